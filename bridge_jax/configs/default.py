@@ -1,0 +1,116 @@
+r"""Paper settings: the flow+stereo model of Lai et al. (CVPR 2019) without 2-warp terms.
+
+ResNet-50 Monodepth network shared by stereo and flow, 512x256 working size, 2 cycles per step (16
+pair-forwards), Adam 1e-4 halved at the starts of epochs 4, 7, 10 and 13 (upstream MultiStepLR; the paper
+says "every 3 epochs, 5 times"), 80 epochs, lambda_sm 10, lambda_lr 0.5. Data: the built-in synthetic stereo
+video unless `--config.data.source` says otherwise.
+
+    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/default
+
+    # KITTI raw cycles instead of the synthetic video:
+    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/kitti \
+            --config.data.source=kitti_raw --config.data.data_dir=$HOME/kitti_raw
+
+The optional argument `:local` shrinks everything for a quick laptop smoke run.
+"""
+
+import dataclasses
+
+import ml_collections
+
+from bridge_jax import losses, models
+
+# Upstream's KITTI-split list has 28,968 cycles; at 2 cycles a step that is one epoch. The synthetic video
+# is endless, so this only fixes the epoch length the learning-rate schedule counts in.
+KITTI_SPLIT_CYCLES = 28968
+
+
+def get_config(arg=None):
+    """Returns the paper's default training config (see module docstring)."""
+    c = ml_collections.ConfigDict()
+    c.variant = "flow_stereo"
+
+    # Network. `separate_networks` = the paper's "without sharing weights" ablation.
+    # Every key of models.model_config (so any of them can be overridden from the command line).
+    c.model = ml_collections.ConfigDict(models.model_config("resnet_md"))
+    c.separate_networks = False
+    c.dtype = "float32"  # compute dtype; "bfloat16" keeps params/optimizer in float32
+
+    # Loss: every field of losses.LossConfig, with its defaults (the paper's choices; each paper/upstream
+    # difference is a switch there). Type 0 = no 2-warp term = the "flow+stereo" model.
+    c.loss = ml_collections.ConfigDict(dataclasses.asdict(losses.LossConfig()))
+
+    # Data. The default source is the built-in synthetic stereo video (procedural, exact ground truth).
+    # Keys of data.pipeline.make_train_dataset; data_dir/split are for kitti_raw | folder | tfds.
+    c.data = ml_collections.ConfigDict(dict(
+        source="synthetic", data_dir="", split="", augment=True, num_workers=0, prefetch=2, read_threads=1,
+        worker_buffer_size=2, max_skip=100, synthetic_num=100_000))
+    c.height = 256
+    c.width = 512
+    c.global_batch = 2  # cycles per step (all devices/processes together)
+
+    # Optimisation.
+    c.lr = 1e-4
+    c.lr_milestones = (4, 7, 10, 13)  # epochs at whose start the lr is multiplied by lr_decay
+    c.lr_decay = 0.5
+    c.adam_b1 = 0.9
+    c.adam_b2 = 0.999
+    c.adam_eps = 1e-8
+    c.num_epochs = 80
+    c.steps_per_epoch = KITTI_SPLIT_CYCLES // 2  # -1: from the data source's size
+    c.num_train_steps = -1  # -1: num_epochs * steps_per_epoch
+    c.seed = 0
+
+    # Micro-batching (maps-first): network pair-forwards per device per call; 0 = whole batch in one jitted
+    # step (the default on GPU/TPU). On XLA:CPU a Python loop of small jitted calls is faster and much leaner.
+    c.micro_batch = 0
+
+    c.init_from = ""  # params-only init: a params dir (convert/export) or a training workdir / step dir
+
+    # Checkpoints, logging, evaluation.
+    c.checkpoint_every = 1000
+    c.keep_checkpoints = 3
+    c.async_checkpoints = True
+    c.log_every = 50
+    c.image_every = 1000
+    c.progress_bar = True
+    c.max_nonfinite_in_row = 20
+    c.eval_every = 2000  # 0: only at the end; -1: never
+    # Held-out synthetic validation set: base seed disjoint from training's `seed`.
+    c.eval = ml_collections.ConfigDict(dict(num_samples=16, seed=1_000_003, batch=4))
+
+    # Multi-host: call jax.distributed.initialize() first (arguments empty = auto-detect on TPU/SLURM...).
+    c.distributed = ml_collections.ConfigDict(dict(
+            enabled=False, coordinator_address="", num_processes=0, process_id=-1))
+
+    if arg == "local":
+        local(c)
+    elif arg:
+        raise ValueError(f"default.py: unknown config argument {arg!r} (expected nothing or 'local')")
+    return c
+
+
+def local(c):
+    """Shrinks a config for a minutes-long CPU smoke run (the `:local` argument of every config)."""
+    c.model = ml_collections.ConfigDict(models.model_config("resnet_md_tiny"))
+    c.height, c.width = 128, 256
+    c.num_train_steps = 20
+    c.steps_per_epoch = 5
+    c.checkpoint_every = 10
+    c.log_every = 1
+    c.image_every = 10
+    c.eval_every = 10
+    c.eval.num_samples = 4
+    return c
+
+
+def variant(name, arg, **loss_overrides):
+    """The default config with a different variant name and loss settings (used by the variant files)."""
+    c = get_config(None)
+    c.variant = name
+    c.loss.update(loss_overrides)
+    if arg == "local":
+        local(c)
+    elif arg:
+        raise ValueError(f"{name}.py: unknown config argument {arg!r} (expected nothing or 'local')")
+    return c

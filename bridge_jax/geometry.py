@@ -1,0 +1,230 @@
+"""Geometry of correspondence maps: warping, unit conversion, image pyramids, occlusion masks.
+
+Conventions (REFERENCE.md §1a/§1b):
+  * Layout NHWC, float32.
+  * A correspondence map D (..., H, W, 2) says where pixel (x, y) of the first image is found in the
+    second: at (x + D_x, y + D_y). Channel 0 is horizontal, channel 1 vertical.
+  * *Pixel* maps are in pixels of the map's own scale; *fraction* maps are ch0 / W_s and ch1 / H_s.
+  * warp(second, D) reconstructs the first image.
+
+All functions are pure, jit/vmap/grad-safe, and contain no Python loops over pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.ndimage import map_coordinates
+
+NUM_SCALES = 4
+
+
+def _check_map(name: str, d, spatial=None):
+    if d.ndim < 3 or d.shape[-1] != 2:
+        raise ValueError(f"{name} must have shape (..., H, W, 2), got {tuple(d.shape)}")
+    if spatial is not None and tuple(d.shape[-3:-1]) != tuple(spatial):
+        raise ValueError(f"{name} has spatial size {tuple(d.shape[-3:-1])}, expected {tuple(spatial)} (the image's H, W)")
+
+
+# ----------------------------------------------------------------------------------------- warping
+def _warp_single(image, disp_px):
+    """image (H, W, C), disp_px (H, W, 2) -> (H, W, C)."""
+    h, w = image.shape[:2]
+    ys, xs = jnp.meshgrid(jnp.arange(h, dtype=disp_px.dtype), jnp.arange(w, dtype=disp_px.dtype), indexing="ij")
+    coords = (ys + disp_px[..., 1], xs + disp_px[..., 0])
+    # mode='nearest' clamps each of the two integer corner indices into the image while the bilinear
+    # weights come from the unclamped position: exactly flownet2 Resample2d / grid_sample(border,
+    # align_corners=True). (mode='constant' in JAX is *not* scipy's constant mode.)
+    sample = lambda channel: map_coordinates(channel, coords, order=1, mode="nearest")
+    return jax.vmap(sample, in_axes=-1, out_axes=-1)(image)
+
+
+def warp(image, disp_px):
+    """Backward-warp `image` by a pixel correspondence map.
+
+    output(x, y) = image sampled bilinearly at (x + D_x, y + D_y), border-replicated outside.
+
+    Args:
+      image: (..., H, W, C) float.
+      disp_px: (..., H, W, 2) offsets in **pixels** of this image's resolution; same leading dims.
+    Returns:
+      (..., H, W, C), the second image brought into the frame of the first.
+    """
+    if image.ndim < 3:
+        raise ValueError(f"image must have shape (..., H, W, C), got {tuple(image.shape)}")
+    _check_map("disp_px", disp_px, image.shape[-3:-1])
+    if image.shape[:-3] != disp_px.shape[:-3]:
+        raise ValueError(f"image leading dims {image.shape[:-3]} differ from disp_px leading dims {disp_px.shape[:-3]}")
+    lead = image.shape[:-3]
+    img = image.reshape((-1,) + image.shape[-3:])
+    d = disp_px.reshape((-1,) + disp_px.shape[-3:]).astype(img.dtype)
+    out = jax.vmap(_warp_single)(img, d)
+    return out.reshape(lead + out.shape[1:])
+
+
+# --------------------------------------------------------------------------------- unit conversion
+def map_scale(shape) -> jnp.ndarray:
+    """(W_s, H_s) multipliers for a map of shape (..., H_s, W_s, 2)."""
+    return jnp.array([shape[-2], shape[-3]], jnp.float32)
+
+
+def frac_to_px(frac):
+    """Fraction map (ch0 / W_s, ch1 / H_s) -> pixels at the map's own scale. (..., H_s, W_s, 2)."""
+    _check_map("frac", frac)
+    return frac * map_scale(frac.shape).astype(frac.dtype)
+
+
+def px_to_frac(px):
+    """Pixel map at its own scale -> fraction map. (..., H_s, W_s, 2)."""
+    _check_map("px", px)
+    return px / map_scale(px.shape).astype(px.dtype)
+
+
+def rescale_px(px, out_hw):
+    """Convert pixel offsets of a map of size (H, W) to pixel units of size out_hw (values only, no resize)."""
+    h, w = px.shape[-3:-1]
+    oh, ow = out_hw
+    return px * jnp.array([ow / w, oh / h], px.dtype)
+
+
+# ----------------------------------------------------------------------------------------- resizing
+def upsample_nearest_2x(x):
+    """Nearest-neighbour x2 upsampling of (..., H, W, C) -> (..., 2H, 2W, C) (PyTorch 'nearest')."""
+    return jnp.repeat(jnp.repeat(x, 2, axis=-3), 2, axis=-2)
+
+
+def resize_bilinear(x, out_hw, *, antialias: bool = True):
+    """Bilinear resize of (..., H, W, C) to out_hw = (H', W').
+
+    With antialias=True and downscaling, the kernel is a triangle stretched by the scale factor, which is
+    what Pillow's BILINEAR does (taps 1/8, 3/8, 3/8, 1/8 for x2), with half-pixel centres and edge taps
+    renormalised. This is the resize upstream uses for its image pyramids.
+    """
+    shape = x.shape[:-3] + tuple(out_hw) + x.shape[-1:]
+    return jax.image.resize(x, shape, method="linear", antialias=antialias)
+
+
+def resize_bilinear_align_corners(x, out_hw):
+    """Bilinear resize with align_corners=True semantics (corner pixels map to corner pixels).
+
+    This is how upstream brings predicted maps to the ground-truth resolution (F.interpolate(...,
+    mode='bilinear', align_corners=True)). (..., H, W, C) -> (..., H', W', C); values are not rescaled.
+    """
+    h, w = x.shape[-3:-1]
+    oh, ow = out_hw
+
+    def axis_weights(n_in, n_out):
+        if n_out == 1 or n_in == 1:
+            pos = jnp.zeros((n_out,), jnp.float32)
+        else:
+            pos = jnp.arange(n_out, dtype=jnp.float32) * ((n_in - 1) / (n_out - 1))
+        lo = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n_in - 1)
+        hi = jnp.clip(lo + 1, 0, n_in - 1)
+        t = pos - lo.astype(jnp.float32)
+        return lo, hi, t
+
+    ylo, yhi, ty = axis_weights(h, oh)
+    xlo, xhi, tx = axis_weights(w, ow)
+    ty = ty[:, None, None].astype(x.dtype)
+    tx = tx[None, :, None].astype(x.dtype)
+    rows = jnp.take(x, ylo, axis=-3) * (1 - ty) + jnp.take(x, yhi, axis=-3) * ty
+    return jnp.take(rows, xlo, axis=-2) * (1 - tx) + jnp.take(rows, xhi, axis=-2) * tx
+
+
+def image_pyramid(images, num_scales: int = NUM_SCALES):
+    """Multi-scale images, finest first: (..., H, W, C) -> (full, H/2, H/4, H/8) for num_scales=4.
+
+    Each level is resized directly from the full-resolution image with the antialiased bilinear
+    (triangle) kernel, like upstream's PIL pyramid. Residual difference to upstream: upstream first
+    truncates the image to uint8 and rounds the result to uint8, i.e. up to ~1/255 per pixel; the
+    parity tests therefore feed upstream's stored pyramids to the loss and test this resize separately.
+    """
+    h, w = images.shape[-3:-1]
+    f = 2 ** (num_scales - 1)
+    if h % f or w % f:
+        raise ValueError(f"images must have H and W divisible by {f} for a {num_scales}-scale pyramid, got {h}x{w}")
+    levels = [images]
+    for s in range(1, num_scales):
+        levels.append(resize_bilinear(images, (h >> s, w >> s)))
+    return tuple(levels)
+
+
+# -------------------------------------------------------------------------------------------- masks
+def border_mask(h: int, w: int, ratio: float = 0.1, dtype=jnp.float32):
+    """(H, W, 1) mask: 0 on a frame of ceil(ratio * H) px on all four sides (width from H, as upstream)."""
+    b = int(math.ceil(h * ratio))
+    ys = jnp.arange(h)[:, None]
+    xs = jnp.arange(w)[None, :]
+    inside = (ys >= b) & (ys < h - b) & (xs >= b) & (xs < w - b)
+    return inside.astype(dtype)[..., None]
+
+
+def _length_sq(x):
+    return jnp.sum(jnp.square(x), axis=-1, keepdims=True)
+
+
+def forward_backward_occlusion(d_fw, d_bw, *, alpha1: float = 0.01, alpha2: float = 0.5, warped_bw_norm: bool = True):
+    """Forward-backward consistency check (paper Sec. 3.2, after Meister et al.).
+
+    A pixel of the first image is occluded if
+        |D + W(D', D)|^2  >  alpha1 * (|D|^2 + |W(D', D)|^2) + alpha2        (warped_bw_norm=True, paper)
+        |D + W(D', D)|^2  >  alpha1 * (|D|^2 + |D'|^2) + alpha2              (warped_bw_norm=False, upstream)
+    and symmetrically for D'. Thresholds are in px^2 of the maps' scale.
+
+    Args:
+      d_fw: (..., H, W, 2) forward pixel map D (first -> second).
+      d_bw: (..., H, W, 2) backward pixel map D' (second -> first).
+    Returns:
+      (occ_fw, occ_bw): float {0, 1} (..., H, W, 1), 1 = occluded; occ_fw lives in the first image's
+      frame, occ_bw in the second's. No gradient flows through them.
+    """
+    _check_map("d_fw", d_fw)
+    _check_map("d_bw", d_bw, d_fw.shape[-3:-1])
+    d_fw = jax.lax.stop_gradient(d_fw)
+    d_bw = jax.lax.stop_gradient(d_bw)
+    return occlusion_from_warped(d_fw, d_bw, warp(d_bw, d_fw), warp(d_fw, d_bw), alpha1=alpha1, alpha2=alpha2,
+                                 warped_bw_norm=warped_bw_norm)
+
+
+def occlusion_from_warped(d_fw, d_bw, bw_warped, fw_warped, *, alpha1: float = 0.01, alpha2: float = 0.5,
+                          warped_bw_norm: bool = True):
+    """forward_backward_occlusion given the already warped maps W(D', D) and W(D, D').
+
+    The cycle loss warps several tensors by the same map in one call (fewer gathers to compile), so it
+    computes the warped maps itself. All inputs (..., H, W, 2) in pixels; gradients are stopped.
+    """
+    d_fw, d_bw, bw_warped, fw_warped = (jax.lax.stop_gradient(x) for x in (d_fw, d_bw, bw_warped, fw_warped))
+    diff_fw = _length_sq(d_fw + bw_warped)
+    diff_bw = _length_sq(d_bw + fw_warped)
+    if warped_bw_norm:
+        thr_fw = alpha1 * (_length_sq(d_fw) + _length_sq(bw_warped)) + alpha2
+        thr_bw = alpha1 * (_length_sq(d_bw) + _length_sq(fw_warped)) + alpha2
+    else:
+        thr_fw = thr_bw = alpha1 * (_length_sq(d_fw) + _length_sq(d_bw)) + alpha2
+    return (diff_fw > thr_fw).astype(d_fw.dtype), (diff_bw > thr_bw).astype(d_fw.dtype)
+
+
+def masks_from_occlusion(occ_fw, occ_bw, *, border_ratio: float = 0.1, floor: float = 1e-3):
+    """border * (1 - occluded) + floor for both directions (upstream's loss masks). (..., H, W, 1)."""
+    h, w = occ_fw.shape[-3:-1]
+    border = border_mask(h, w, border_ratio, occ_fw.dtype)
+    return border * (1 - occ_fw) + floor, border * (1 - occ_bw) + floor
+
+
+def occlusion_mask(d_fw, d_bw, *, alpha1: float = 0.01, alpha2: float = 0.5, warped_bw_norm: bool = True,
+                   border_ratio: float = 0.1, floor: float = 1e-3):
+    """Loss masks of a flow pair (1 = use the pixel), as upstream builds them.
+
+    mask = border * (1 - occluded) + floor, for both directions, gradients stopped. The border band of
+    ceil(border_ratio * H_s) px and the +1e-3 floor are upstream's (not in the paper). Stereo pairs are
+    not masked (their mask is 1): that choice is made by the caller (losses.cycle_loss).
+
+    Args:
+      d_fw, d_bw: (..., H, W, 2) forward / backward pixel maps.
+    Returns:
+      (mask_fw (..., H, W, 1) in the first frame, mask_bw (..., H, W, 1) in the second frame).
+    """
+    occ_fw, occ_bw = forward_backward_occlusion(d_fw, d_bw, alpha1=alpha1, alpha2=alpha2, warped_bw_norm=warped_bw_norm)
+    return masks_from_occlusion(occ_fw, occ_bw, border_ratio=border_ratio, floor=floor)

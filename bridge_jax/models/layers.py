@@ -1,0 +1,282 @@
+"""Building blocks shared by the networks: PyTorch-convention convolutions on NHWC arrays.
+
+Why not `flax.nnx.Conv`: the ported networks must match PyTorch numerics exactly (so converted upstream
+weights behave the same). PyTorch pads *symmetrically* (`padding=k//2` on both sides, also for stride 2),
+whereas `'SAME'` pads stride-2 convs asymmetrically; and PyTorch's default init differs from Flax's.
+
+Performance (see ../shared/notes/xla-cpu-performance.md): on XLA:CPU a 1x1 convolution is written as a
+`jnp.dot` over the channel axis; its weight gradient is ~4x faster than the equivalent `lax.conv`.
+
+Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2, 3, 1, 0)); biases `(out,)`.
+"""
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jax import lax
+
+_DN = ("NHWC", "HWIO", "NHWC")
+
+
+def torch_uniform_init(fan_in: int):
+    """PyTorch's default `nn.Conv2d` init: U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weight and bias.
+
+    (kaiming_uniform with a=sqrt(5) gives exactly this bound for the weight.)
+    """
+    bound = 1.0 / math.sqrt(fan_in)
+
+    def init(key, shape, dtype=jnp.float32):
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+def kaiming_normal_init(fan_in: int):
+    """`nn.init.kaiming_normal_(w, mode='fan_in')` (gain sqrt(2)): N(0, 2/fan_in)."""
+    std = math.sqrt(2.0 / fan_in)
+
+    def init(key, shape, dtype=jnp.float32):
+        return std * jax.random.normal(key, shape, dtype)
+
+    return init
+
+
+def zeros_init(key, shape, dtype=jnp.float32):
+    del key
+    return jnp.zeros(shape, dtype)
+
+
+def elu(x: jax.Array) -> jax.Array:
+    """ELU with alpha = 1 (`nn.ELU()`)."""
+    return jax.nn.elu(x)
+
+
+def leaky_relu(x: jax.Array, slope: float = 0.1) -> jax.Array:
+    """`nn.LeakyReLU(0.1)`."""
+    return jnp.where(x >= 0, x, slope * x)
+
+
+def conv2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, stride: int = 1,
+           padding: int | None = None, dilation: int = 1) -> jax.Array:
+    """PyTorch `F.conv2d` semantics on NHWC data.
+
+    Args:
+      x: `(N, H, W, Cin)`.
+      kernel: `(k, k, Cin, Cout)` HWIO.
+      bias: `(Cout,)` or None.
+      stride: spatial stride (same in both axes).
+      padding: symmetric zero padding on every side; default `dilation * (k // 2)` (PyTorch's usual choice).
+      dilation: kernel dilation.
+
+    Returns:
+      `(N, H_out, W_out, Cout)` with `H_out = floor((H + 2p - dilation*(k-1) - 1) / stride) + 1`.
+    """
+    k = kernel.shape[0]
+    if padding is None:
+        padding = dilation * (k // 2)
+    kernel = kernel.astype(x.dtype)
+    if k == 1 and kernel.shape[1] == 1 and padding == 0:
+        # 1x1 conv == per-pixel matmul; XLA:CPU runs its weight gradient much faster as a dot.
+        xs = x[:, ::stride, ::stride, :] if stride > 1 else x
+        y = jnp.dot(xs, kernel[0, 0])
+    elif _use_im2col(x.shape, kernel.shape, stride, dilation):
+        y = _conv_im2col(x, kernel, padding)
+    else:
+        y = lax.conv_general_dilated(
+            x, kernel, window_strides=(stride, stride), padding=[(padding, padding), (padding, padding)],
+            rhs_dilation=(dilation, dilation), dimension_numbers=_DN)
+    if bias is not None:
+        y = y + bias.astype(y.dtype)
+    return y
+
+
+IM2COL_MAX_PIXELS = 256
+IM2COL_MIN_CHANNELS = 1024
+
+
+def _use_im2col(x_shape, k_shape, stride, dilation) -> bool:
+    """XLA:CPU's conv runs at a fraction of its usual speed on tiny maps with very many channels (e.g. the
+    decoder's first 3x3 conv, 2048 channels at 8x16); one big matmul over im2col patches is ~2x faster there."""
+    return (stride == 1 and dilation == 1 and x_shape[1] * x_shape[2] <= IM2COL_MAX_PIXELS
+            and x_shape[3] >= IM2COL_MIN_CHANNELS)
+
+
+def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
+    """Stride-1 conv as `(N*H*W, k*k*Cin) @ (k*k*Cin, Cout)` (same result as `lax.conv`, HWIO kernel)."""
+    kh, kw = kernel.shape[:2]
+    n, h, w, _ = x.shape
+    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
+    ho, wo = h + 2 * padding - kh + 1, w + 2 * padding - kw + 1
+    cols = jnp.concatenate([xp[:, i:i + ho, j:j + wo] for i in range(kh) for j in range(kw)], axis=-1)
+    return jnp.dot(cols, kernel.reshape(kh * kw * kernel.shape[2], kernel.shape[3]))
+
+
+def conv_transpose2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, stride: int = 2,
+                     padding: int = 1) -> jax.Array:
+    """PyTorch `F.conv_transpose2d` semantics on NHWC data (no output_padding, no dilation).
+
+    Args:
+      x: `(N, H, W, Cin)`.
+      kernel: `(k, k, Cin, Cout)`: the PyTorch ConvTranspose2d weight `(Cin, Cout, k, k)` permuted (2, 3, 0, 1),
+        i.e. *not* spatially flipped.
+      bias: `(Cout,)` or None.
+
+    Returns:
+      `(N, (H-1)*stride - 2*padding + k, ..., Cout)`; for k=4, stride=2, padding=1 exactly `(N, 2H, 2W, Cout)`.
+    """
+    k = kernel.shape[0]
+    pad = k - 1 - padding
+    w = kernel[::-1, ::-1].astype(x.dtype)  # transposed conv == dilated-input conv with the flipped kernel
+    y = lax.conv_general_dilated(x, w, window_strides=(1, 1), padding=[(pad, pad), (pad, pad)],
+                                 lhs_dilation=(stride, stride), dimension_numbers=_DN)
+    if bias is not None:
+        y = y + bias.astype(y.dtype)
+    return y
+
+
+def max_pool_3x3_s2(x: jax.Array) -> jax.Array:
+    """`nn.MaxPool2d(kernel_size=3, stride=2, padding=1)`: pads with -inf. `(N,H,W,C) -> (N,ceil(H/2),ceil(W/2),C)`."""
+    # A Python scalar init lets JAX pick reduce_window_max, which is differentiable (an array init is not).
+    return lax.reduce_window(x, -jnp.inf, lax.max, (1, 3, 3, 1), (1, 2, 2, 1), ((0, 0), (1, 1), (1, 1), (0, 0)))
+
+
+def upsample_nearest2x(x: jax.Array) -> jax.Array:
+    """`nn.Upsample(scale_factor=2)` (nearest): `(N, H, W, C) -> (N, 2H, 2W, C)`."""
+    n, h, w, c = x.shape
+    x = jnp.broadcast_to(x[:, :, None, :, None, :], (n, h, 2, w, 2, c))
+    return x.reshape(n, 2 * h, 2 * w, c)
+
+
+def upsample_nearest2x_conv3x3(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None) -> jax.Array:
+    """`conv3x3(pad=1)(upsample_nearest2x(x))` computed at the *low* resolution (same result, 4/9 of the FLOPs).
+
+    Output pixel (2i+a, 2j+b) of the upsampled-then-convolved map only sees low-res rows {i-1, i} (a=0) or
+    {i, i+1} (a=1), with kernel rows merged: a=0 -> [w0, w1+w2], a=1 -> [w0+w1, w2] (same for columns). Each of
+    the 4 phases is a 2x2 conv on the low-res map; the phases are interleaved back (depth-to-space).
+
+    Args:
+      x: `(N, H, W, Cin)`; kernel `(3, 3, Cin, Cout)` HWIO; bias `(Cout,)`.
+    Returns:
+      `(N, 2H, 2W, Cout)`.
+    """
+    n, h, w, _ = x.shape
+    kernel = kernel.astype(x.dtype)
+    cout = kernel.shape[-1]
+    # merge matrices M[a] (2 taps x 3 rows): tap t of phase a sums kernel rows M[a][t].
+    merge = jnp.array([[[1, 0, 0], [0, 1, 1]], [[1, 1, 0], [0, 0, 1]]], kernel.dtype)  # (phase, tap, row)
+    # k2[a, b, ty, tx, ci, co] = sum_r sum_s merge[a, ty, r] merge[b, tx, s] kernel[r, s, ci, co]
+    k2 = jnp.einsum("aur,bvs,rsio->abuvio", merge, merge, kernel)
+    outs = []
+    for a in range(2):
+        row = []
+        for b in range(2):
+            # phase a uses rows (i-1, i) for a=0 -> pad top 1; (i, i+1) for a=1 -> pad bottom 1.
+            pad_h = (1, 0) if a == 0 else (0, 1)
+            pad_w = (1, 0) if b == 0 else (0, 1)
+            y = lax.conv_general_dilated(x, k2[a, b], (1, 1), [pad_h, pad_w], dimension_numbers=_DN)
+            row.append(y)
+        outs.append(jnp.stack(row, axis=3))  # (N, H, W, 2[b], Cout)
+    y = jnp.stack(outs, axis=2)  # (N, H, 2[a], W, 2[b], Cout)
+    y = y.reshape(n, 2 * h, 2 * w, cout)
+    if bias is not None:
+        y = y + bias.astype(y.dtype)
+    return y
+
+
+class Conv(nnx.Module):
+    """A 2-D convolution with PyTorch semantics (symmetric padding, bias, PyTorch default init).
+
+    Params: `kernel (k, k, in, out)` HWIO, `bias (out,)`.
+    """
+
+    def __init__(self, in_features: int, out_features: int, kernel_size: int, *, stride: int = 1,
+                 dilation: int = 1, padding: int | None = None, init: str = "torch", rngs: nnx.Rngs):
+        self.stride = stride
+        self.dilation = dilation
+        self.padding = padding
+        self.init_kind = init
+        fan_in = in_features * kernel_size * kernel_size
+        if init == "torch":
+            w_init, b_init = torch_uniform_init(fan_in), torch_uniform_init(fan_in)
+        elif init == "kaiming_normal":
+            w_init, b_init = kaiming_normal_init(fan_in), zeros_init
+        else:
+            raise ValueError(f"unknown init {init!r}; expected 'torch' or 'kaiming_normal'")
+        self.kernel = nnx.Param(w_init(rngs.params(), (kernel_size, kernel_size, in_features, out_features)))
+        self.bias = nnx.Param(b_init(rngs.params(), (out_features,)))
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return conv2d(x, self.kernel[...], self.bias[...], stride=self.stride, padding=self.padding,
+                      dilation=self.dilation)
+
+
+class ConvTranspose(nnx.Module):
+    """PyTorch `nn.ConvTranspose2d(in, out, k, stride, padding)` on NHWC; kernel `(k, k, in, out)` unflipped.
+
+    Init as upstream PWC-Net: kaiming_normal fan_in where PyTorch's fan_in of a transposed-conv weight
+    `(in, out, k, k)` is `out * k * k`; bias zero.
+    """
+
+    def __init__(self, in_features: int, out_features: int, kernel_size: int = 4, *, stride: int = 2,
+                 padding: int = 1, rngs: nnx.Rngs):
+        self.stride = stride
+        self.padding = padding
+        self.init_kind = "kaiming_normal_transpose"
+        fan_in = out_features * kernel_size * kernel_size
+        self.kernel = nnx.Param(kaiming_normal_init(fan_in)(
+            rngs.params(), (kernel_size, kernel_size, in_features, out_features)))
+        self.bias = nnx.Param(jnp.zeros((out_features,), jnp.float32))
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return conv_transpose2d(x, self.kernel[...], self.bias[...], stride=self.stride, padding=self.padding)
+
+
+def init_params_like(model: nnx.Module, abstract_params: dict, rng: jax.Array) -> dict:
+    """Draw every Conv / ConvTranspose parameter of `model` (may be abstract) from its `init_kind` law.
+
+    Same distributions as the modules' own initialisers, but drawn from two flat random vectors (one
+    uniform, one normal) so that initialising the 58 M-parameter net compiles at most two kernels instead of one
+    per parameter shape (eager per-shape compilation took minutes on 2 cores). Deterministic in `rng`.
+
+    Returns:
+      a params dict with the structure of `abstract_params`, float32 numpy arrays.
+    """
+    import numpy as np
+
+    specs = []  # (path to kernel's parent, kernel shape, bias shape, kind)
+    for path, node in nnx.iter_graph(model):
+        if isinstance(node, (Conv, ConvTranspose)):
+            specs.append((tuple(str(p) for p in path), tuple(node.kernel.shape), tuple(node.bias.shape),
+                          node.init_kind))
+    n_uni = sum(math.prod(k) + math.prod(b) for _, k, b, kind in specs if kind == "torch")
+    n_nor = sum(math.prod(k) for _, k, _, kind in specs if kind != "torch")
+    k_u, k_n = jax.random.split(rng)
+    uni = np.asarray(jax.random.uniform(k_u, (n_uni,), jnp.float32, -1.0, 1.0)) if n_uni else None
+    nor = np.asarray(jax.random.normal(k_n, (n_nor,), jnp.float32)) if n_nor else None
+    out = jax.tree.map(lambda _: None, abstract_params)
+    off_u = off_n = 0
+    for path, kshape, bshape, kind in specs:
+        nk, nb = math.prod(kshape), math.prod(bshape)
+        if kind == "torch":
+            bound = 1.0 / math.sqrt(math.prod(kshape[:3]))
+            kernel = uni[off_u:off_u + nk] * bound
+            bias = uni[off_u + nk:off_u + nk + nb] * bound
+            off_u += nk + nb
+        else:
+            fan_in = math.prod(kshape[:3]) if kind == "kaiming_normal" else kshape[0] * kshape[1] * kshape[3]
+            kernel = nor[off_n:off_n + nk] * math.sqrt(2.0 / fan_in)
+            bias = np.zeros(nb, np.float32)
+            off_n += nk
+        node = out
+        for p in path:
+            node = node[p]
+        node["kernel"] = kernel.reshape(kshape).astype(np.float32)
+        node["bias"] = bias.reshape(bshape).astype(np.float32)
+    missing = [kp for kp, v in jax.tree_util.tree_flatten_with_path(out, is_leaf=lambda x: x is None)[0]
+               if v is None]
+    if missing:
+        raise ValueError(f"parameters without an initialiser: {missing[:5]}")
+    return out

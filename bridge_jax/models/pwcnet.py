@@ -1,0 +1,227 @@
+"""PWC-Net (Sun et al. 2018), the backbone of the paper's supplementary variant, in the layout upstream uses.
+
+Pipeline for a pair `(N, H, W, 6)` = [image_a, image_b] (H, W multiples of 64):
+1. A shared 6-level feature pyramid: per level a stride-2 3x3 conv and two 3x3 convs, LeakyReLU(0.1),
+   widths 16/32/64/96/128/196 (levels 1..6 at H/2 .. H/64).
+2. Coarse to fine, levels 6..2: warp image_b's features by the upsampled flow of the level above (scaled by
+   20/2^l as in PWC-Net), **cost volume** = correlation of image_a's features with the warped ones over a
+   (2*md+1)^2 window (md=4, channel mean, zero padding) + LeakyReLU; a densely connected estimator
+   (5 convs of 128/128/96/64/32, each output concatenated *in front of* its input) predicts the flow.
+   Levels 6..3 also produce a 4x4/2 transposed-conv upsampled flow and feature for the next level.
+3. A context network (dilated 3x3 convs, dilations 1/2/4/8/16/1, widths 128/128/128/96/64/32, then 2) refines
+   the level-2 flow residually.
+
+Output adapted like upstream (train.py with `--model_name pwc`) so the same losses apply: scale s (0..3) is
+the level-(s+2) flow times 4, bilinearly resized (align_corners=True) to (H/2^s, W/2^s), used as **pixels at
+that scale**; `frac = px / (W_s, H_s)`. Unlike resnet_md there is no 0.3*tanh bound.
+
+Init as upstream: kaiming-normal (fan_in) weights, zero biases. Parameter names mirror upstream's module
+attributes (conv1a, conv1aa, ..., conv6_0, predict_flow6, deconv6, upfeat6, ..., dc_conv7); upstream also
+defines an unused `deconv2`, kept here so an upstream state dict maps one to one. Default size: 9,374,340 params.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from bridge_jax.models.layers import Conv, ConvTranspose, leaky_relu
+
+DEFAULT_CONFIG = {
+    "name": "pwcnet",
+    "md": 4,
+    "pyramid": [16, 32, 64, 96, 128, 196],
+    "estimator": [128, 128, 96, 64, 32],
+    "context": [128, 128, 128, 96, 64, 32],
+    "dilations": [1, 2, 4, 8, 16, 1],
+}
+MULTIPLE = 64
+FLOW_SCALE = 20.0
+"""PWC-Net's internal flow unit: the warp at level l uses flow * 20 / 2^l (upstream: 0.625, 1.25, 2.5, 5)."""
+OUTPUT_GAIN = 4.0
+"""Upstream multiplies each level's flow by 4 before resizing it to the output scale."""
+
+
+def correlation(f1: jax.Array, f2: jax.Array, max_displacement: int = 4) -> jax.Array:
+    """Cost volume (FlowNet/PWC `Correlation`, kernel 1, strides 1), pure JAX and differentiable.
+
+    Args:
+      f1, f2: `(N, H, W, C)` feature maps.
+      max_displacement: d; displacements (dy, dx) in [-d, d]^2.
+    Returns:
+      `(N, H, W, (2d+1)^2)`; channel `(dy + d) * (2d + 1) + (dx + d)` holds
+      `mean_c f1[n, y, x, c] * f2[n, y + dy, x + dx, c]` with f2 zero outside the image.
+    """
+    d = max_displacement
+    _, h, w, c = f1.shape
+    f2p = jnp.pad(f2, ((0, 0), (d, d), (d, d), (0, 0)))
+    out = []
+    for dy in range(-d, d + 1):
+        for dx in range(-d, d + 1):
+            shifted = f2p[:, d + dy:d + dy + h, d + dx:d + dx + w, :]
+            out.append(jnp.sum(f1 * shifted, axis=-1))
+    return jnp.stack(out, axis=-1) / c
+
+
+def warp_zero(x: jax.Array, flow: jax.Array) -> jax.Array:
+    """Backward-warp `x` by `flow` pixels with zero padding, masked like upstream PWC-Net.
+
+    Samples x bilinearly at (x + flow_x, y + flow_y) (grid_sample, align_corners=True, zeros padding) and
+    multiplies by a mask that is 1 only where the whole bilinear footprint lies inside the image
+    (upstream: floor(clamp(grid_sample(ones)))). The mask is not differentiated.
+
+    Args:
+      x: `(N, H, W, C)`; flow: `(N, H, W, 2)` pixels (ch0 x, ch1 y).
+    Returns:
+      `(N, H, W, C)`.
+    """
+    n, h, w, c = x.shape
+    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=flow.dtype), jnp.arange(w, dtype=flow.dtype), indexing="ij")
+    px = gx[None] + flow[..., 0]
+    py = gy[None] + flow[..., 1]
+    x0 = jnp.floor(px)
+    y0 = jnp.floor(py)
+    flat = x.reshape(n, h * w, c)
+    out = jnp.zeros_like(x)
+    inside_weight = jnp.zeros((n, h, w), flow.dtype)
+    for oy in (0, 1):
+        for ox in (0, 1):
+            xi = x0 + ox
+            yi = y0 + oy
+            wgt = (1 - jnp.abs(px - xi)) * (1 - jnp.abs(py - yi))
+            valid = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
+            idx = (jnp.clip(yi, 0, h - 1) * w + jnp.clip(xi, 0, w - 1)).astype(jnp.int32).reshape(n, h * w, 1)
+            vals = jnp.take_along_axis(flat, idx, axis=1).reshape(n, h, w, c)
+            wv = jnp.where(valid, wgt, 0.0)
+            out = out + vals * wv[..., None].astype(x.dtype)
+            inside_weight = inside_weight + wv
+    mask = jax.lax.stop_gradient((inside_weight >= 1.0 - 1e-4).astype(x.dtype))
+    return out * mask[..., None]
+
+
+def resize_bilinear_align_corners(x: jax.Array, height: int, width: int) -> jax.Array:
+    """`nn.UpsamplingBilinear2d(size=(height, width))` (align_corners=True) on `(N, h, w, C)`."""
+    n, h, w, c = x.shape
+
+    def axis_weights(src: int, dst: int):
+        if dst == 1 or src == 1:
+            pos = jnp.zeros((dst,), jnp.float32)
+        else:
+            pos = jnp.arange(dst, dtype=jnp.float32) * ((src - 1) / (dst - 1))
+        i0 = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, src - 1)
+        i1 = jnp.clip(i0 + 1, 0, src - 1)
+        t = pos - i0
+        return i0, i1, t
+
+    y0, y1, ty = axis_weights(h, height)
+    x0, x1, tx = axis_weights(w, width)
+    rows = x[:, y0] * (1 - ty)[None, :, None, None] + x[:, y1] * ty[None, :, None, None]
+    return rows[:, :, x0] * (1 - tx)[None, None, :, None] + rows[:, :, x1] * tx[None, None, :, None]
+
+
+class _ConvLeaky(nnx.Module):
+    """upstream `myconv`: conv3x3 (optionally strided / dilated) + LeakyReLU(0.1)."""
+
+    def __init__(self, cin: int, cout: int, *, stride: int = 1, dilation: int = 1, rngs: nnx.Rngs):
+        self.conv = Conv(cin, cout, 3, stride=stride, dilation=dilation, init="kaiming_normal", rngs=rngs)
+
+    def __call__(self, x):
+        return leaky_relu(self.conv(x))
+
+
+class PWCNet(nnx.Module):
+    """See the module docstring. `__call__(pair (N, H, W, 6)) -> {"px": (s0..s3), "frac": (s0..s3)}`."""
+
+    def __init__(self, config: Mapping, *, rngs: nnx.Rngs):
+        pyr, est, ctx, dil = (list(config[k]) for k in ("pyramid", "estimator", "context", "dilations"))
+        self.md = int(config["md"])
+        if len(pyr) != 6 or len(est) != 5 or len(ctx) != 6 or len(dil) != 6:
+            raise ValueError("pwcnet config needs 6 pyramid widths, 5 estimator widths, 6 context widths/dilations")
+        cin = 3
+        for lvl in range(1, 7):
+            names = ("conv6aa", "conv6a", "conv6b") if lvl == 6 else (f"conv{lvl}a", f"conv{lvl}aa", f"conv{lvl}b")
+            for j, name in enumerate(names):
+                setattr(self, name, _ConvLeaky(cin, pyr[lvl - 1], stride=2 if j == 0 else 1, rngs=rngs))
+                cin = pyr[lvl - 1]
+        nd = (2 * self.md + 1) ** 2
+        dense = sum(est)
+        for lvl in range(6, 1, -1):
+            od = nd if lvl == 6 else nd + pyr[lvl - 1] + 4
+            c = od
+            for j, width in enumerate(est):
+                setattr(self, f"conv{lvl}_{j}", _ConvLeaky(c, width, rngs=rngs))
+                c += width
+            setattr(self, f"predict_flow{lvl}", Conv(od + dense, 2, 3, init="kaiming_normal", rngs=rngs))
+            setattr(self, f"deconv{lvl}", ConvTranspose(2, 2, 4, rngs=rngs))  # deconv2: unused, as upstream
+            if lvl > 2:
+                setattr(self, f"upfeat{lvl}", ConvTranspose(od + dense, 2, 4, rngs=rngs))
+        c = nd + pyr[1] + 4 + dense
+        for j, (width, d) in enumerate(zip(ctx, dil)):
+            setattr(self, f"dc_conv{j + 1}", _ConvLeaky(c, width, dilation=d, rngs=rngs))
+            c = width
+        self.dc_conv7 = Conv(c, 2, 3, init="kaiming_normal", rngs=rngs)
+
+    def pyramid(self, img: jax.Array) -> list[jax.Array]:
+        """`(N, H, W, 3) -> [level1 (H/2), ..., level6 (H/64)]`."""
+        feats, x = [], img
+        for lvl in range(1, 7):
+            names = ("conv6aa", "conv6a", "conv6b") if lvl == 6 else (f"conv{lvl}a", f"conv{lvl}aa", f"conv{lvl}b")
+            for name in names:
+                x = getattr(self, name)(x)
+            feats.append(x)
+        return feats
+
+    def _estimate(self, lvl: int, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        for j in range(5):
+            x = jnp.concatenate([getattr(self, f"conv{lvl}_{j}")(x), x], axis=-1)
+        return x, getattr(self, f"predict_flow{lvl}")(x)
+
+    def __call__(self, pair: jax.Array) -> dict[str, tuple[jax.Array, ...]]:
+        from bridge_jax.models.resnet_md import check_input_shape
+
+        check_input_shape(pair, MULTIPLE)
+        n, h, w, _ = pair.shape
+        feats = self.pyramid(jnp.concatenate([pair[..., :3], pair[..., 3:]], axis=0))
+        f1 = [f[:n] for f in feats]
+        f2 = [f[n:] for f in feats]
+        flows = {}
+        x = leaky_relu(correlation(f1[5], f2[5], self.md))
+        up_flow = up_feat = None
+        for lvl in range(6, 1, -1):
+            if lvl < 6:
+                warped = warp_zero(f2[lvl - 1], up_flow * (FLOW_SCALE / 2 ** lvl))
+                corr = leaky_relu(correlation(f1[lvl - 1], warped, self.md))
+                x = jnp.concatenate([corr, f1[lvl - 1], up_flow, up_feat], axis=-1)
+            x, flow = self._estimate(lvl, x)
+            if lvl > 2:
+                up_flow = getattr(self, f"deconv{lvl}")(flow)
+                up_feat = getattr(self, f"upfeat{lvl}")(x)
+            flows[lvl] = flow
+        for j in range(1, 7):
+            x = getattr(self, f"dc_conv{j}")(x)
+        flows[2] = flows[2] + self.dc_conv7(x)
+        px, frac = [], []
+        for s in range(4):
+            hs, ws = h // 2 ** s, w // 2 ** s
+            p = resize_bilinear_align_corners(flows[s + 2].astype(jnp.float32) * OUTPUT_GAIN, hs, ws)
+            px.append(p)
+            frac.append(p / jnp.array([ws, hs], jnp.float32))
+        return {"px": tuple(px), "frac": tuple(frac)}
+
+
+def build(config: Mapping, rngs: nnx.Rngs) -> PWCNet:
+    return PWCNet(config, rngs=rngs)
+
+
+def normalize_config(config: Mapping) -> dict:
+    unknown = set(config) - set(DEFAULT_CONFIG) - {"dtype"}
+    if unknown:
+        raise ValueError(f"unknown pwcnet config keys {sorted(unknown)}; known: {sorted(DEFAULT_CONFIG)}")
+    out = dict(DEFAULT_CONFIG)
+    out.update(config)
+    for k in ("pyramid", "estimator", "context", "dilations"):
+        out[k] = [int(v) for v in out[k]]
+    out["md"] = int(out["md"])
+    return out

@@ -1,0 +1,572 @@
+"""Run a trained model on your own images or video and write pictures and raw values.
+
+    # optical flow between two frames (or --pair-kind stereo for a rectified left/right pair)
+    python -m bridge_jax.predict --checkpoint CKPT frame_a.png frame_b.png --out out/
+    # a stereo-video cycle: left_t right_t left_t1 right_t1 → disparity at t and t+1, flow, depth
+    python -m bridge_jax.predict --checkpoint CKPT lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
+    # a folder of frames (mono: flow between consecutive frames; with left/ and right/ sub-folders: stereo video)
+    python -m bridge_jax.predict --checkpoint CKPT frames/ --out out/
+    # a video (mono), a side-by-side stereo video, or two videos (left, right); writes out/video.mp4 too
+    python -m bridge_jax.predict --checkpoint CKPT drive.mp4 --out out/ [--stereo-video sbs]
+    # KITTI 2015 (or 2012) benchmark submission from a KITTI layout folder (training or testing)
+    python -m bridge_jax.predict --checkpoint CKPT --kitti-submission --data-dir data_scene_flow --out sub/
+
+Outputs (``NNNNNN`` = frame index): ``flow/NNNNNN.png`` (Middlebury colour wheel, key in ``legend_flow.png``),
+``disparity/NNNNNN.png`` and ``depth/NNNNNN.png`` (colormaps, colour bars in ``legend_*.png``), raw values as
+KITTI 16-bit PNGs (``*_kitti/``) and/or ``.npy`` (``*_npy/``, float32 pixels / metres), ``video.mp4`` for video
+input and ``predict.json`` describing the run. Maps are at the input resolution, rescaled exactly as in
+evaluation (:mod:`bridge_jax.evaluate`). Colour scales are fixed for a whole run (from the first frame unless
+``--max-flow`` / ``--max-disp`` are given) so that frames are comparable.
+
+KITTI submission layout: 2015 → ``disp_0/``, ``disp_1/`` (the t+1 disparity brought into frame t along the
+predicted flow) and ``flow/`` with ``<id>_10.png`` (zip the three folders for scene flow; ``disp_0`` alone for
+stereo, ``flow`` alone for flow); 2012 → ``stereo/<id>_10.png`` and ``flow/<id>_10.png`` (zip each folder's
+files at the archive root, as the KITTI 2012 devkit asks).
+
+The output folder must not exist or be empty (``--overwrite`` replaces it); everything is written to a temporary
+sibling folder and renamed at the end, so an interrupted run leaves nothing under the requested name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import sys
+from collections.abc import Iterator, Sequence
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from bridge_jax import evaluate, visualize
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
+VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", ".wmv")
+STEREO_SUBDIRS = (("left", "right"), ("image_02", "image_03"), ("image_2", "image_3"), ("image_0", "image_1"))
+
+
+class PredictError(ValueError):
+    """Bad user input for predict (names the file or option)."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Inputs: a stream of (index, left, right-or-None) frames
+
+
+@dataclasses.dataclass
+class Source:
+    """A frame source. ``stereo``: frames carry a right image; ``pair_kind``: for two plain images only."""
+
+    kind: str                       # "pair" | "cycle" | "folder" | "video"
+    stereo: bool
+    frames: Iterator[tuple[np.ndarray, Optional[np.ndarray]]]
+    num_frames: Optional[int]
+    fps: Optional[float] = None
+    description: str = ""
+
+
+def read_image(path: str) -> np.ndarray:
+    """uint8 RGB ``(H, W, 3)``; grayscale is replicated. Raises PredictError naming the path."""
+    try:
+        return _kitti().read_image(path)
+    except ValueError as e:  # missing, truncated or undecodable
+        raise PredictError(str(e)) from None
+
+
+def _is_image(path: str) -> bool:
+    return os.path.splitext(path)[1].lower() in IMAGE_EXTS
+
+
+def _is_video(path: str) -> bool:
+    return os.path.splitext(path)[1].lower() in VIDEO_EXTS
+
+
+def _list_images(folder: str) -> list[str]:
+    files = sorted(f for f in os.listdir(folder) if _is_image(f) and os.path.isfile(os.path.join(folder, f)))
+    return [os.path.join(folder, f) for f in files]
+
+
+def _checked_size(img: np.ndarray, size: Optional[tuple], path: str) -> tuple:
+    if size is not None and img.shape[:2] != size:
+        raise PredictError(f"{path} is {img.shape[1]}x{img.shape[0]}, but the first frame is {size[1]}x{size[0]}")
+    return img.shape[:2]
+
+
+def _image_stream(lefts: list[str], rights: Optional[list[str]]):
+    size = None
+    for i, lp in enumerate(lefts):
+        left = read_image(lp)
+        size = _checked_size(left, size, lp)
+        right = None
+        if rights is not None:
+            right = read_image(rights[i])
+            _checked_size(right, size, rights[i])
+        yield left, right
+
+
+def _video_frames(path: str) -> Iterator[np.ndarray]:
+    cap = cv2.VideoCapture(path)
+    try:
+        n = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            n += 1
+            yield np.ascontiguousarray(frame[..., ::-1])
+        if n == 0:
+            raise PredictError(f"cannot read any frame from video {path}")
+    finally:
+        cap.release()
+
+
+def _open_video(path: str) -> tuple[Optional[int], Optional[float]]:
+    if not os.path.isfile(path):
+        raise PredictError(f"video {path} does not exist")
+    cap = cv2.VideoCapture(path)
+    try:
+        if not cap.isOpened():
+            raise PredictError(f"cannot open video {path}")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        return (n if n > 0 else None), (fps if fps and fps > 0 else None)
+    finally:
+        cap.release()
+
+
+def _video_stream(paths: Sequence[str], sbs: bool):
+    if len(paths) == 2:
+        for i, (a, b) in enumerate(zip(_video_frames(paths[0]), _video_frames(paths[1]))):
+            if a.shape != b.shape:
+                raise PredictError(f"frame {i}: {paths[0]} is {a.shape[:2]} but {paths[1]} is {b.shape[:2]}")
+            yield a, b
+        return
+    for frame in _video_frames(paths[0]):
+        if sbs:
+            w = frame.shape[1]
+            if w % 2:
+                raise PredictError(f"side-by-side video {paths[0]} has odd width {w}")
+            yield np.ascontiguousarray(frame[:, : w // 2]), np.ascontiguousarray(frame[:, w // 2:])
+        else:
+            yield frame, None
+
+
+def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "flow",
+                stereo_video: str = "none") -> Source:
+    """Work out what the inputs are and return a frame stream (errors name the offending path)."""
+    if not inputs:
+        raise PredictError("no INPUTS given (images, a folder or a video)")
+    for p in inputs:
+        if not os.path.exists(p):
+            raise PredictError(f"input {p} does not exist")
+    if mode == "auto":
+        if len(inputs) == 1 and os.path.isdir(inputs[0]):
+            mode = "folder"
+        elif all(_is_video(p) for p in inputs) and len(inputs) in (1, 2):
+            mode = "video"
+        elif len(inputs) == 2 and all(_is_image(p) for p in inputs):
+            mode = "pair"
+        elif len(inputs) == 4 and all(_is_image(p) for p in inputs):
+            mode = "cycle"
+        else:
+            raise PredictError(f"cannot tell what {list(inputs)} are: give 2 images (pair), 4 images (cycle: "
+                               "left_t right_t left_t1 right_t1), one folder, or 1-2 videos (or set --mode)")
+    if mode == "pair":
+        if len(inputs) != 2:
+            raise PredictError(f"--mode pair needs 2 images, got {len(inputs)}")
+        if pair_kind == "stereo":
+            return Source("pair", True, _image_stream([inputs[0]], [inputs[1]]), 1,
+                          description="stereo pair (left, right)")
+        return Source("pair", False, _image_stream(list(inputs), None), 2, description="image pair (t, t+1)")
+    if mode == "cycle":
+        if len(inputs) != 4:
+            raise PredictError(f"--mode cycle needs 4 images (left_t right_t left_t1 right_t1), got {len(inputs)}")
+        return Source("cycle", True, _image_stream([inputs[0], inputs[2]], [inputs[1], inputs[3]]), 2,
+                      description="stereo cycle")
+    if mode == "folder":
+        folder = inputs[0]
+        if len(inputs) != 1 or not os.path.isdir(folder):
+            raise PredictError(f"--mode folder needs one folder, got {list(inputs)}")
+        for ln, rn in STEREO_SUBDIRS:
+            ld, rd = os.path.join(folder, ln), os.path.join(folder, rn)
+            if os.path.isdir(ld) and os.path.isdir(rd):
+                if os.path.isdir(os.path.join(ld, "data")):   # KITTI raw drive: image_02/data
+                    ld, rd = os.path.join(ld, "data"), os.path.join(rd, "data")
+                lefts, rights = _list_images(ld), _list_images(rd)
+                if len(lefts) != len(rights):
+                    raise PredictError(f"mismatched counts: {ld} has {len(lefts)} images, {rd} has {len(rights)}")
+                if not lefts:
+                    raise PredictError(f"no images in {ld}")
+                return Source("folder", True, _image_stream(lefts, rights), len(lefts),
+                              description=f"stereo frames {ld} / {rd}")
+        frames = _list_images(folder)
+        if len(frames) < 2:
+            raise PredictError(f"folder {folder} has {len(frames)} images; need at least 2 consecutive frames "
+                               "(or left/ and right/ sub-folders)")
+        return Source("folder", False, _image_stream(frames, None), len(frames), description=f"frames {folder}")
+    if mode == "video":
+        if len(inputs) not in (1, 2):
+            raise PredictError(f"--mode video needs 1 video (or 2: left, right), got {len(inputs)}")
+        counts = [_open_video(p) for p in inputs]
+        n, fps = counts[0]
+        if len(inputs) == 2 and counts[1][0] is not None and n is not None:
+            n = min(n, counts[1][0])
+        stereo = len(inputs) == 2 or stereo_video == "sbs"
+        return Source("video", stereo, _video_stream(inputs, stereo_video == "sbs"), n, fps,
+                      description=f"video {' + '.join(inputs)}" + (" (side by side)" if stereo_video == "sbs" else ""))
+    raise PredictError(f"unknown --mode {mode!r}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Running the model
+
+
+class Runner:
+    """Batches (task, index, image a, image b) jobs into fixed-size predictor calls and rescales each map to the
+    input resolution like evaluation: flow → :func:`evaluate.flow_to_gt_resolution`, disparity (−channel 0)
+    → :func:`evaluate.disparity_to_gt_resolution`."""
+
+    def __init__(self, predictor, batch_pairs: int):
+        self.predictor = predictor
+        self.batch_pairs = max(1, int(batch_pairs))
+        self.jobs: list[tuple[str, int, np.ndarray, np.ndarray]] = []
+
+    def add(self, task: str, index: int, a: np.ndarray, b: np.ndarray) -> list[tuple[str, int, np.ndarray]]:
+        self.jobs.append((task, index, a, b))
+        return self.run() if len(self.jobs) >= self.batch_pairs else []
+
+    def run(self) -> list[tuple[str, int, np.ndarray]]:
+        if not self.jobs:
+            return []
+        jobs, self.jobs = self.jobs, []
+        maps = evaluate._working_maps(self.predictor, [j[2] for j in jobs], [j[3] for j in jobs],
+                                      pad_to=self.batch_pairs, tasks=[evaluate._task_of(j[0]) for j in jobs])
+        out = []
+        for (task, index, a, _), m in zip(jobs, maps):
+            h, w = a.shape[:2]
+            if task == "flow":
+                out.append((task, index, evaluate.flow_to_gt_resolution(m, h, w)))
+            else:
+                out.append((task, index, evaluate.disparity_to_gt_resolution(-m[..., 0], h, w)))
+        return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Writing
+
+
+def _kitti():
+    from bridge_jax.data import kitti
+    return kitti
+
+
+class Writer:
+    """Writes the per-frame outputs into ``root`` (a temporary folder), with colour scales fixed on first use."""
+
+    def __init__(self, root: str, *, raw: Sequence[str], max_flow: Optional[float], max_disp: Optional[float],
+                 focal: Optional[float], baseline: Optional[float], video_fps: Optional[float]):
+        self.root = root
+        self.raw = set(raw)
+        self.max_flow = max_flow
+        self.max_disp = max_disp
+        self.focal, self.baseline = focal, baseline
+        self.video_fps = video_fps
+        self.video: Optional[cv2.VideoWriter] = None
+        self.video_size = None
+        self.counts: dict[str, int] = {}
+
+    def _path(self, sub: str, index: int, ext: str) -> str:
+        d = os.path.join(self.root, sub)
+        os.makedirs(d, exist_ok=True)
+        return os.path.join(d, f"{index:06d}{ext}")
+
+    def flow(self, index: int, flow: np.ndarray, sub: str = "flow") -> np.ndarray:
+        if self.max_flow is None:
+            norms = np.sqrt((flow.astype(np.float64) ** 2).sum(-1))
+            self.max_flow = max(1.0, float(np.percentile(norms, 99)))
+        color = visualize.flow_to_color(flow, max_flow=self.max_flow)
+        visualize.write_image(self._path(sub, index, ".png"), color)
+        if "png" in self.raw:
+            _kitti().write_flow_png(self._path(f"{sub}_kitti", index, ".png"), flow, np.ones(flow.shape[:2], bool))
+        if "npy" in self.raw:
+            np.save(self._path(f"{sub}_npy", index, ".npy"), flow.astype(np.float32))
+        self.counts[sub] = self.counts.get(sub, 0) + 1
+        return color
+
+    def disparity(self, index: int, disp: np.ndarray, sub: str = "disparity") -> np.ndarray:
+        if self.max_disp is None:
+            self.max_disp = max(1.0, 1.1 * float(np.percentile(disp, 99)))
+        color = visualize.disparity_to_color(disp, vmax=self.max_disp)
+        visualize.write_image(self._path(sub, index, ".png"), color)
+        if "png" in self.raw:
+            _kitti().write_disp_png(self._path(f"{sub}_kitti", index, ".png"), np.clip(disp, 1 / 256, 255.0),
+                                    np.ones(disp.shape, bool))
+        if "npy" in self.raw:
+            np.save(self._path(f"{sub}_npy", index, ".npy"), disp.astype(np.float32))
+        self.counts[sub] = self.counts.get(sub, 0) + 1
+        if self.focal and self.baseline and sub == "disparity":
+            from bridge_jax import metrics
+            depth = metrics.disparity_to_depth(disp, self.focal, self.baseline)
+            visualize.write_image(self._path("depth", index, ".png"), visualize.depth_to_color(depth))
+            if "npy" in self.raw:
+                np.save(self._path("depth_npy", index, ".npy"), depth.astype(np.float32))
+            self.counts["depth"] = self.counts.get("depth", 0) + 1
+        return color
+
+    def video_frame(self, tiles: list[np.ndarray], labels: list[str]) -> None:
+        img = visualize.panel(tiles, labels)
+        if self.video is None:
+            h, w = img.shape[:2]
+            self.video_size = (w, h)
+            path = os.path.join(self.root, "video.mp4")
+            self.video = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), self.video_fps or 10.0, (w, h))
+            if not self.video.isOpened():
+                raise OSError(f"cannot open a video writer for {path}")
+        self.video.write(np.ascontiguousarray(img[..., ::-1]))
+
+    def legends(self) -> None:
+        if self.max_flow is not None:
+            visualize.write_image(os.path.join(self.root, "legend_flow.png"),
+                                  visualize.color_wheel_legend(256, max_flow=self.max_flow))
+        if self.max_disp is not None:
+            visualize.write_image(os.path.join(self.root, "legend_disparity.png"),
+                                  visualize.colorbar(0.0, self.max_disp, "magma", unit="px", label="disparity"))
+        if self.counts.get("depth"):
+            visualize.write_image(os.path.join(self.root, "legend_depth.png"),
+                                  visualize.colorbar(2.0, 80.0, "magma", unit="m", label="depth", inverse=True))
+
+    def close(self) -> None:
+        if self.video is not None:
+            self.video.release()
+            self.video = None
+
+
+def _progress(total: Optional[int], enabled: bool, desc: str):
+    if not enabled:
+        return evaluate._NoBar()
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr)
+
+
+def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool = False, batch: int = 4,
+                   raw: Sequence[str] = ("png",), max_flow: Optional[float] = None, max_disp: Optional[float] = None,
+                   focal: Optional[float] = None, baseline: Optional[float] = None, write_video: Optional[bool] = None,
+                   progress: bool = True, info: Optional[dict] = None) -> dict:
+    """Run the predictor over a frame stream and write everything into ``out_dir`` (atomically).
+
+    Flow is predicted between consecutive left frames (t → t+1), disparity for every stereo frame; for a cycle
+    also the t+1 disparity brought into frame t (``disparity_t1_in_t/``). Returns the run description that is
+    also written to ``predict.json``.
+    """
+    evaluate.check_output_dir(out_dir, overwrite)
+    tmp = evaluate.make_temp_dir(out_dir)
+    write_video = source.kind == "video" if write_video is None else write_video
+    writer = Writer(tmp, raw=raw, max_flow=max_flow, max_disp=max_disp, focal=focal, baseline=baseline,
+                    video_fps=source.fps)
+    runner = Runner(predictor, batch)
+    pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "disp":...} for the video
+    results: dict[tuple[str, int], np.ndarray] = {}
+    bar = _progress(source.num_frames, progress, "predict")
+    n_frames = 0
+
+    def handle(outputs):
+        for task, index, value in outputs:
+            if task == "flow":
+                color = writer.flow(index, value)
+            else:
+                color = writer.disparity(index, value)
+            if source.kind == "cycle":
+                results[(task, index)] = value
+            if write_video:
+                pending.setdefault(index, {})[task] = color
+        if write_video:
+            _flush_video(writer, pending, source.stereo, final=False)
+
+    try:
+        prev = None
+        for index, (left, right) in enumerate(source.frames):
+            if write_video:
+                pending.setdefault(index, {})["image"] = left
+            if prev is not None:
+                handle(runner.add("flow", index - 1, prev, left))
+            if right is not None:
+                handle(runner.add("disp", index, left, right))
+            prev = left
+            n_frames += 1
+            bar.update(1)
+        handle(runner.run())
+        if n_frames == 0:
+            raise PredictError("the input has no frame")
+        if not source.stereo and n_frames < 2:
+            raise PredictError("a single frame has no optical flow: give at least 2 frames")
+        if source.kind == "cycle":
+            disp_1 = evaluate.bring_to_frame_t(results[("disp", 1)], results[("flow", 0)])
+            writer.disparity(0, disp_1, sub="disparity_t1_in_t")
+        if write_video:
+            _flush_video(writer, pending, source.stereo, final=True)
+        writer.close()
+        writer.legends()
+        desc = {"input": source.description, "kind": source.kind, "stereo": source.stereo, "frames": n_frames,
+                "outputs": writer.counts, "max_flow_px": writer.max_flow, "max_disparity_px": writer.max_disp,
+                "focal_px": focal, "baseline_m": baseline, "raw": sorted(set(raw))}
+        if info:
+            desc.update(info)
+        with open(os.path.join(tmp, "predict.json"), "w") as f:
+            json.dump(desc, f, indent=1)
+        evaluate.publish_dir(tmp, out_dir)
+        return desc
+    except BaseException:
+        writer.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        bar.close()
+
+
+def _flush_video(writer: Writer, pending: dict[int, dict], stereo: bool, final: bool) -> None:
+    """Write video frames in order as soon as their tiles are complete (at the end: whatever is there; the last
+    frame has no flow and gets a black tile)."""
+    while pending:
+        index = min(pending)
+        entry = pending[index]
+        complete = "image" in entry and "flow" in entry and ("disp" in entry or not stereo)
+        if not complete and not final:
+            return
+        blank = np.zeros_like(entry["image"])
+        tiles, labels = [entry["image"], entry.get("flow", blank)], ["input", "flow"]
+        if stereo:
+            tiles.append(entry.get("disp", blank))
+            labels.append("disparity")
+        writer.video_frame(tiles, labels)
+        del pending[index]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# KITTI submission
+
+
+def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[str] = None, year: Optional[int] = None,
+                     overwrite: bool = False, batch: int = 1, progress: bool = True) -> dict:
+    """Write a KITTI 2015 scene-flow (``disp_0``, ``disp_1``, ``flow``) or KITTI 2012 (``stereo``, ``flow``)
+    submission for every frame id of a KITTI layout folder (``split`` default: ``testing`` if present)."""
+    kitti = _kitti()
+    if not os.path.isdir(data_dir):
+        raise PredictError(f"--data-dir {data_dir} is not a directory")
+    if split is None:
+        split = "testing" if os.path.isdir(os.path.join(data_dir, "testing")) else "training"
+    if year is None:
+        root = os.path.join(data_dir, split) if os.path.isdir(os.path.join(data_dir, split)) else data_dir
+        year = 2015 if os.path.isdir(os.path.join(root, "image_2")) else 2012
+    specs = evaluate._kitti_specs(data_dir, split, year=year, require_gt=False)
+    evaluate.check_output_dir(out_dir, overwrite)
+    tmp = evaluate.make_temp_dir(out_dir)
+    method = evaluate.ModelMethod(predictor, batch)
+    folders = ("disp_0", "disp_1", "flow") if year == 2015 else ("stereo", "flow")
+    bar = _progress(len(specs), progress, f"KITTI {year} submission")
+    try:
+        for d in folders:
+            os.makedirs(os.path.join(tmp, d))
+        for start in range(0, len(specs), max(1, batch)):
+            frames = []
+            for spec in specs[start:start + max(1, batch)]:
+                images = {k: evaluate._read_rgb(p) for k, p in spec.images.items()}
+                if year == 2012:
+                    images.pop("right_t1")
+                # a GT-less frame; mark disp_1 as wanted for 2015 so that the t+1 disparity is predicted
+                gt = {"disp_occ_1": np.zeros(1)} if year == 2015 else {}
+                frames.append(evaluate.Frame(spec.frame_id, images, gt))
+            for frame, pred in zip(frames, method(frames)):
+                ones = np.ones(frame.size, bool)
+                name = f"{frame.frame_id}_10.png"
+                disp_files = ((("disp_0", "disp_t"), ("disp_1", "disp_1")) if year == 2015
+                              else (("stereo", "disp_t"),))
+                for folder, key in disp_files:   # dense: every pixel valid, inside the 16-bit PNG range
+                    kitti.write_disp_png(os.path.join(tmp, folder, name), np.clip(pred[key], 1 / 256, 255.0), ones)
+                kitti.write_flow_png(os.path.join(tmp, "flow", name), np.clip(pred["flow"], -511.0, 511.0), ones)
+            bar.update(len(frames))
+        desc = {"kitti_year": year, "data_dir": os.path.abspath(data_dir), "split": split, "frames": len(specs),
+                "folders": list(folders)}
+        with open(os.path.join(tmp, "submission.json"), "w") as f:
+            json.dump(desc, f, indent=1)
+        evaluate.publish_dir(tmp, out_dir)
+        return desc
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        bar.close()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Command line
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bridge_jax.predict", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("inputs", nargs="*", help="2 images, 4 images (cycle), a folder, or 1-2 videos")
+    p.add_argument("--checkpoint", required=True, help="params-only dir, training workdir or step dir")
+    p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
+    p.add_argument("--mode", default="auto", choices=("auto", "pair", "cycle", "folder", "video"))
+    p.add_argument("--pair-kind", default="flow", choices=("flow", "stereo"),
+                   help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
+    p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
+                   help="one video holding left|right side by side")
+    p.add_argument("--working-size", type=evaluate.parse_size, default=None, help="network input HxW (256x512)")
+    p.add_argument("--batch", type=int, default=4, help="pairs per inference call")
+    p.add_argument("--raw", default="png", help="raw outputs: comma list of png (KITTI 16-bit), npy, or none")
+    p.add_argument("--max-flow", type=float, default=None, help="flow colour-wheel radius in px (default: auto)")
+    p.add_argument("--max-disp", type=float, default=None, help="disparity colormap top in px (default: auto)")
+    p.add_argument("--focal", type=float, default=None, help="focal length (px, at the input resolution) for depth")
+    p.add_argument("--baseline", type=float, default=None, help="stereo baseline (m) for depth")
+    p.add_argument("--no-video", dest="video", action="store_false", default=None, help="no video.mp4")
+    p.add_argument("--kitti-submission", action="store_true", help="write a KITTI submission from --data-dir")
+    p.add_argument("--data-dir", default=None, help="KITTI 2015/2012 layout folder (with --kitti-submission)")
+    p.add_argument("--split", default=None, help="KITTI sub-folder (default: testing if present)")
+    p.add_argument("--kitti-year", type=int, choices=(2012, 2015), default=None)
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.batch < 1:
+            raise PredictError(f"--batch must be >= 1, got {args.batch}")
+        raw = [r for r in args.raw.split(",") if r and r != "none"]
+        bad = [r for r in raw if r not in ("png", "npy")]
+        if bad:
+            raise PredictError(f"--raw: unknown value(s) {bad}; expected png, npy or none")
+        if (args.focal is None) != (args.baseline is None):
+            raise PredictError("--focal and --baseline go together")
+        evaluate.check_output_dir(args.out, args.overwrite)
+        if args.kitti_submission:
+            if not args.data_dir:
+                raise PredictError("--kitti-submission needs --data-dir")
+            if args.inputs:
+                raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
+            predictor = evaluate.load_predictor(args.checkpoint, args.working_size)
+            desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
+                                    overwrite=args.overwrite, batch=args.batch, progress=args.progress)
+        else:
+            source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
+                                 stereo_video=args.stereo_video)
+            predictor = evaluate.load_predictor(args.checkpoint, args.working_size)
+            desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
+                                  max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
+                                  baseline=args.baseline, write_video=args.video, progress=args.progress,
+                                  info={"checkpoint": args.checkpoint})
+    except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(desc, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

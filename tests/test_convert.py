@@ -1,0 +1,305 @@
+"""Upstream .pth -> bridge_jax converter: file formats (written here without torch), key mapping, safety,
+error reporting, and numerical parity with the upstream network (fixture from ../shared/peer)."""
+
+import io
+import os
+import struct
+import zipfile
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from bridge_jax import checkpointing, convert, models
+
+# ---------------------------------------------------------------- a tiny torch.save writer (pickle protocol 2)
+
+
+class _Global:
+    def __init__(self, module, name):
+        self.module, self.name = module, name
+
+
+class _Call:
+    """Pickles as GLOBAL fn + args tuple + REDUCE."""
+
+    def __init__(self, fn, *args):
+        self.fn, self.args = fn, args
+
+
+class _Tensor:
+    def __init__(self, key, array):
+        self.key, self.array = key, np.ascontiguousarray(array, np.float32)
+
+
+class _Writer:
+    """Hand-written opcodes for the subset of pickle that torch.save emits for state dicts."""
+
+    def __init__(self, legacy=False):
+        self.out = io.BytesIO()
+        self.legacy = legacy
+
+    def dump(self, obj):
+        self.out.write(b"\x80\x02")
+        self._save(obj)
+        self.out.write(b".")
+        return self.out.getvalue()
+
+    def _save(self, obj):
+        w = self.out.write
+        if obj is None:
+            w(b"N")
+        elif obj is True or obj is False:
+            w(b"\x88" if obj else b"\x89")
+        elif isinstance(obj, int):
+            if -2**31 <= obj < 2**31:
+                w(b"J" + struct.pack("<i", obj))
+            else:
+                raw = obj.to_bytes((obj.bit_length() + 8) // 8, "little", signed=True)
+                w(b"\x8a" + bytes([len(raw)]) + raw)
+        elif isinstance(obj, float):
+            w(b"G" + struct.pack(">d", obj))
+        elif isinstance(obj, str):
+            raw = obj.encode()
+            w(b"X" + struct.pack("<I", len(raw)) + raw)
+        elif isinstance(obj, tuple):
+            w(b"(")
+            for v in obj:
+                self._save(v)
+            w(b"t")
+        elif isinstance(obj, list):
+            w(b"]")
+            if obj:
+                w(b"(")
+                for v in obj:
+                    self._save(v)
+                w(b"e")
+        elif isinstance(obj, dict):
+            self._save(_Call(_Global("collections", "OrderedDict")))
+            if obj:
+                w(b"(")
+                for k, v in obj.items():
+                    self._save(k)
+                    self._save(v)
+                w(b"u")
+        elif isinstance(obj, _Global):
+            w(f"c{obj.module}\n{obj.name}\n".encode())
+        elif isinstance(obj, _Call):
+            self._save(obj.fn)
+            self._save(tuple(obj.args))
+            w(b"R")
+        elif isinstance(obj, _Tensor):
+            a = obj.array
+            stride = tuple(s // a.itemsize for s in a.strides)
+            pid = ("storage", _Global("torch", "FloatStorage"), obj.key, "cpu", int(a.size))
+            if self.legacy:
+                pid = pid + (None,)
+            self._save(_Global("torch._utils", "_rebuild_tensor_v2"))
+            w(b"(")
+            self._save(pid)
+            w(b"Q")  # BINPERSID
+            for v in (0, tuple(a.shape), stride, False):
+                self._save(v)
+            self._save(_Call(_Global("collections", "OrderedDict")))
+            w(b"tR")
+        else:
+            raise TypeError(type(obj))
+
+
+def write_pth(path, obj, tensors, legacy=False):
+    """`obj` holds _Tensor leaves; `tensors` lists them (storage order)."""
+    if not legacy:
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+            zf.writestr("archive/data.pkl", _Writer().dump(obj))
+            zf.writestr("archive/byteorder", "little")
+            for t in tensors:
+                zf.writestr(f"archive/data/{t.key}", t.array.tobytes())
+            zf.writestr("archive/version", "3\n")
+        return
+    with open(path, "wb") as f:
+        f.write(_Writer().dump(0x1950A86A20F9469CFC6C))
+        f.write(_Writer().dump(1001))
+        f.write(_Writer().dump({"protocol_version": 1001, "little_endian": True}))
+        f.write(_Writer(legacy=True).dump(obj))
+        f.write(_Writer().dump([t.key for t in tensors]))
+        for t in tensors:
+            f.write(struct.pack("<q", t.array.size) + t.array.tobytes())
+
+
+# ---------------------------------------------------------------- upstream key names, written out by hand
+
+
+def upstream_shapes(stem, planes, blocks, decoder, exp=4):
+    """{key: OIHW shape} of upstream MonodepthNet, from REFERENCE.md §1e (independent of convert.py)."""
+    s = {"conv1.weight": (stem, 6, 7, 7), "conv1.bias": (stem,)}
+    cin = stem
+    for li, (p, n) in enumerate(zip(planes, blocks), start=1):
+        for i in range(n):
+            pre = f"layer{li}.{i}."
+            s[pre + "conv1.weight"], s[pre + "conv1.bias"] = (p, cin, 1, 1), (p,)
+            s[pre + "conv2.weight"], s[pre + "conv2.bias"] = (p, p, 3, 3), (p,)
+            s[pre + "conv3.weight"], s[pre + "conv3.bias"] = (exp * p, p, 1, 1), (exp * p,)
+            s[pre + "shortcut.0.weight"], s[pre + "shortcut.0.bias"] = (exp * p, cin, 1, 1), (exp * p,)
+            cin = exp * p
+    d6, d5, d4, d3, d2, d1 = decoder
+    ups = {6: (cin, d6, d6 + exp * planes[2]), 5: (d6, d5, d5 + exp * planes[1]), 4: (d5, d4, d4 + exp * planes[0]),
+           3: (d4, d3, d3 + stem + 2), 2: (d3, d2, d2 + stem + 2), 1: (d2, d1, d1 + 2)}
+    for k, (i, o, mid) in ups.items():
+        s[f"up{k}.conv1.weight"], s[f"up{k}.conv1.bias"] = (o, i, 3, 3), (o,)
+        s[f"up{k}.conv2.weight"], s[f"up{k}.conv2.bias"] = (o, mid, 3, 3), (o,)
+    for k, c in {4: d4, 3: d3, 2: d2, 1: d1}.items():
+        s[f"get_disp{k}.conv1.weight"], s[f"get_disp{k}.conv1.bias"] = (2, c, 3, 3), (2,)
+    return s
+
+
+TINY = dict(stem=8, planes=[8, 16, 16, 32], blocks=[1, 2, 1, 1], decoder=[32, 16, 16, 8, 8, 8])
+
+
+def test_full_size_key_table_matches_reference():
+    want = upstream_shapes(64, [64, 128, 256, 512], [3, 4, 6, 3], [512, 256, 128, 64, 32, 16])
+    assert len(want) == 162 and sum(int(np.prod(v)) for v in want.values()) == 58_461_416
+    got = {k: v[1] for k, v in convert.expected_keys(models.model_config("resnet_md")).items()}
+    assert got == want
+
+
+def tiny_state_dict(rng):
+    return {k: (rng.normal(size=shape) * 0.3).astype(np.float32) for k, shape in upstream_shapes(**TINY).items()}
+
+
+def np_conv_nchw(x, w, b, stride=1):
+    """Reference conv in PyTorch layout: x (N,C,H,W), w (O,I,k,k) OIHW, symmetric padding k//2."""
+    k = w.shape[-1]
+    p = k // 2
+    xp = np.pad(x, ((0, 0), (0, 0), (p, p), (p, p)))
+    ho = (x.shape[2] + 2 * p - k) // stride + 1
+    wo = (x.shape[3] + 2 * p - k) // stride + 1
+    out = np.zeros((x.shape[0], w.shape[0], ho, wo))
+    for i in range(k):
+        for j in range(k):
+            patch = xp[:, :, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
+            out += np.einsum("nchw,oc->nohw", patch, w[:, :, i, j])
+    return out + b[None, :, None, None]
+
+
+@pytest.mark.parametrize("layout", ["zip", "legacy", "training_dict"])
+def test_round_trip_first_layers_match_numpy(tmp_path, layout):
+    rng = np.random.default_rng(0)
+    sd = tiny_state_dict(rng)
+    tensors = [_Tensor(str(i), v) for i, v in enumerate(sd.values())]
+    obj = dict(zip(sd, tensors))
+    marker = tmp_path / "pwned"
+    if layout == "training_dict":  # upstream epoch checkpoint, with a pickled object that must not run
+        evil = _Call(_Global("os", "system"), f"touch {marker}")
+        obj = {"epoch": 3, "state_dict": obj, "optimizer": {"state": {}, "param_groups": [{"lr": 1e-4}]},
+               "scheduler": evil}
+    src = tmp_path / "up.pth"
+    write_pth(src, obj, tensors, legacy=(layout == "legacy"))
+    out = tmp_path / "converted"
+    assert convert.main(["--from", str(src), "--out", str(out)]) == 0
+    assert not marker.exists()
+    cfg, params = checkpointing.load_params(out)
+    assert cfg["name"] == "resnet_md_tiny"
+    # bridge_jax forward (NHWC) vs numpy forward in PyTorch layout straight from the state dict
+    x = rng.uniform(size=(1, 6, 64, 128))
+    graphdef, _ = models.abstract_init(cfg)
+    from flax import nnx
+    model = nnx.merge(graphdef, nnx.State(params))
+    skip1, skip2, skip3 = (np.asarray(a).transpose(0, 3, 1, 2)
+                           for a in model.encode(x.transpose(0, 2, 3, 1).astype(np.float32))[:3])
+    g = {k: v.astype(np.float64) for k, v in sd.items()}
+    elu = lambda v: np.where(v > 0, v, np.expm1(np.minimum(v, 0)))  # noqa: E731
+    r1 = elu(np_conv_nchw(x, g["conv1.weight"], g["conv1.bias"], 2))
+    xp = np.pad(r1, ((0, 0), (0, 0), (1, 1), (1, 1)), constant_values=-np.inf)
+    r2 = np.max([xp[:, :, i:i + 32:2, j:j + 64:2] for i in range(3) for j in range(3)], axis=0)
+    y = elu(np_conv_nchw(r2, g["layer1.0.conv1.weight"], g["layer1.0.conv1.bias"]))
+    y = elu(np_conv_nchw(y, g["layer1.0.conv2.weight"], g["layer1.0.conv2.bias"], 2))
+    r3 = elu(np_conv_nchw(y, g["layer1.0.conv3.weight"], g["layer1.0.conv3.bias"])
+             + np_conv_nchw(r2, g["layer1.0.shortcut.0.weight"], g["layer1.0.shortcut.0.bias"], 2))
+    for got, ref in ((skip1, r1), (skip2, r2), (skip3, r3)):
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+    head = np.asarray(params["get_disp1"]["conv1"]["kernel"])
+    np.testing.assert_array_equal(head, sd["get_disp1.conv1.weight"].transpose(2, 3, 1, 0))
+
+
+def test_torch_saved_file_if_torch_installed(tmp_path):
+    torch = pytest.importorskip("torch", reason="torch not installed (optional extra); pure-python files tested")
+    sd = tiny_state_dict(np.random.default_rng(1))
+    torch.save({k: torch.from_numpy(v) for k, v in sd.items()}, tmp_path / "t.pth")
+    got = convert.load_state_dict(tmp_path / "t.pth")
+    assert set(got) == set(sd) and all(np.array_equal(got[k], sd[k]) for k in sd)
+
+
+def test_mismatches_reported_by_name_and_nothing_written(tmp_path, capsys):
+    sd = tiny_state_dict(np.random.default_rng(2))
+    sd.pop("up3.conv2.bias")
+    sd["layer2.1.conv2.weight"] = np.zeros((16, 16, 5, 5), np.float32)
+    sd["extra.weight"] = np.zeros((1,), np.float32)
+    tensors = [_Tensor(str(i), v) for i, v in enumerate(sd.values())]
+    src = tmp_path / "bad.pth"
+    write_pth(src, dict(zip(sd, tensors)), tensors)
+    out = tmp_path / "out"
+    assert convert.main(["--from", str(src), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert "up3.conv2.bias" in err and "extra.weight" in err and "layer2.1.conv2.weight" in err
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("kind", ["text", "list", "dict_without_tensors", "npz"])
+def test_not_an_upstream_checkpoint(tmp_path, capsys, kind):
+    src = tmp_path / "x.pth"
+    if kind == "text":
+        src.write_text("hello")
+    elif kind == "npz":
+        np.savez(src.with_suffix(".npz"), a=np.zeros(3))
+        src = src.with_suffix(".npz")
+    else:
+        obj = [1, 2] if kind == "list" else {"epoch": 3, "lr": 5}
+        write_pth(src, obj, [])
+    assert convert.main(["--from", str(src), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error:")
+    assert not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------- parity with upstream PyTorch (fixture)
+
+FIXTURE = os.environ.get("BRIDGE_FIXTURE_DIR")
+
+
+def _fixture_dir():
+    if not FIXTURE:
+        pytest.skip("BRIDGE_FIXTURE_DIR not set (generate it with ../shared/peer/harness.py fixture)")
+    d = Path(FIXTURE)
+    if not (d / "weights.pth").is_file() or not (d / "reference.npz").is_file():
+        pytest.skip(f"BRIDGE_FIXTURE_DIR={FIXTURE} has no weights.pth + reference.npz")
+    return d
+
+
+def test_parity_with_upstream_fixture():
+    """Seed-0 upstream MonodepthNet, converted: every scale's fraction and pixel maps within 1e-4."""
+    d = _fixture_dir()
+    sd = convert.load_state_dict(d / "weights.pth")
+    cfg, params = convert.convert_state_dict(sd)
+    assert cfg["name"] == "resnet_md" and models.param_count(params) == 58_461_416
+    ref = np.load(d / "reference.npz")
+    x = ref["net_input"].transpose(0, 2, 3, 1)
+    graphdef, _ = models.abstract_init(cfg)
+    from flax import nnx
+
+    def fwd(p, x):
+        return nnx.merge(graphdef, nnx.State(p)).forward_with_activations(x)
+
+    maps, acts = jax.jit(fwd)(jax.tree.map(np.asarray, params), x)
+    report = {}
+    for name in ("conv1", "pool1", "layer1", "layer2", "layer3", "layer4", "up6", "up5", "up4", "up3", "up2", "up1"):
+        want = ref[f"act_{name}"].transpose(0, 2, 3, 1)
+        report[name] = float(np.abs(np.asarray(acts[name]) - want).max() / max(1.0, np.abs(want).max()))
+    errors = {}
+    for s in range(4):
+        for kind, key in (("frac", "disp_frac"), ("px", "disp_px")):
+            errors[f"{kind}{s}"] = float(np.abs(np.asarray(maps[kind][s]) - ref[f"{key}_{s}"].transpose(0, 2, 3, 1)).max())
+    print("parity max abs error per scale:", errors, "\nactivation rel. errors:", report)
+    assert all(v < 1e-4 for v in report.values()), f"first mismatch in activations: {report}"
+    assert all(v < 1e-4 for v in errors.values()), errors

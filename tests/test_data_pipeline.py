@@ -1,0 +1,263 @@
+"""grain pipeline (bridge_jax.data.pipeline) and own-folder source (bridge_jax.data.folders)."""
+import logging
+import os
+
+import numpy as np
+import pytest
+
+from bridge_jax.data import folders, kitti, pipeline, synthetic
+from tests.test_data_fakes import bilinear, make_fake_raw, truncate_file
+
+
+class _IdSource:
+    """Cheap fake source: cycle i is a constant image with value i (so batches reveal which cycles they hold)."""
+
+    def __init__(self, n, size=(4, 6)):
+        self.n, self.size = n, size
+        self.root = "<ids>"
+
+    def __len__(self):
+        return self.n
+
+    def load(self, i):
+        return {"cycle": np.full((4,) + self.size + (3,), i, np.uint8), "id": str(i)}
+
+
+def _ids(batch):
+    return [int(round(v * 255)) for v in batch["cycle"][:, 0, 0, 0, 0]]
+
+
+# ------------------------------------------------------------------------------------------------ augmentation
+
+def test_photometric_lut_on_unit_range_hand_values():
+    p = pipeline.AugmentParams(flip=False, gamma=1.2, brightness=1.5, colour=(1.1, 0.9, 1.0))
+    cyc = np.zeros((4, 1, 2, 3), np.uint8)
+    cyc[:, 0, 0] = 128
+    cyc[:, 0, 1] = 255
+    out = pipeline.apply_augment(cyc, p)
+    x = (128 / 255) ** 1.2 * 1.5
+    np.testing.assert_allclose(out[0, 0, 0], [min(x * 1.1, 1), x * 0.9, x], rtol=1e-6)
+    # gamma on [0,1] keeps white white; brightness clips at 1 before the colour factor (upstream order).
+    np.testing.assert_allclose(out[:, 0, 1], np.tile([1.0, 0.9, 1.0], (4, 1)), rtol=1e-6)
+    g = pipeline.apply_augment(cyc, pipeline.AugmentParams(gamma=0.8))
+    np.testing.assert_allclose(g[0, 0, 1], 1.0)
+    np.testing.assert_allclose(g[0, 0, 0], (128 / 255) ** 0.8, rtol=1e-6)
+
+
+def test_uint8_training_path_matches_float_augmentation():
+    cyc = np.random.default_rng(1).integers(0, 256, (4, 5, 7, 3), dtype=np.uint8)
+    for seed in range(6):
+        p = pipeline.draw_augment(np.random.default_rng(seed))
+        exact = pipeline.apply_augment(cyc, p)
+        fast = pipeline.apply_augment_uint8(cyc, p).astype(np.float32) / 255
+        assert np.abs(exact - fast).max() <= 0.5 / 255 + 1e-6
+
+
+def test_augmentation_same_draw_for_the_four_frames():
+    base = np.random.default_rng(0).integers(0, 256, (8, 10, 3), dtype=np.uint8)
+    cyc = np.stack([base] * 4)
+    outs = []
+    for seed in range(12):
+        params = pipeline.draw_augment(np.random.default_rng(seed))
+        out = pipeline.apply_augment(cyc, params)
+        for k in range(1, 4):
+            np.testing.assert_array_equal(out[k], out[0])
+        outs.append(out[0])
+    assert len({o.tobytes() for o in outs}) > 8                      # but the draws differ between cycles
+    # Through the grain pipeline as well (random_map, seeded per element).
+    ds = pipeline.make_train_dataset({"augment": True}, global_batch=4, seed=3, height=8, width=10,
+                                     process_index=0, process_count=1, source=_ConstSource(cyc))
+    b = next(iter(ds))["cycle"]
+    for k in range(1, 4):
+        np.testing.assert_array_equal(b[:, k], b[:, 0])
+    assert not np.array_equal(b[0, 0], b[1, 0]) or not np.array_equal(b[1, 0], b[2, 0])
+
+
+class _ConstSource:
+    def __init__(self, cyc):
+        self.cyc, self.root = cyc, "<const>"
+
+    def __len__(self):
+        return 16
+
+    def load(self, i):
+        return {"cycle": self.cyc, "id": str(i)}
+
+
+def test_flip_keeps_stereo_valid():
+    h, w = 64, 128
+    s = synthetic.render_sample(21, h, w)
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    f = pipeline.apply_augment(s["cycle"], pipeline.AugmentParams(flip=True))
+    # New right = mirrored old left, whose disparity is the mirrored old disparity; its match in the new left
+    # (= mirrored old right) is at x + d.
+    d, m = s["disp_t"][:, ::-1], s["noc_disp_t"][:, ::-1]
+    good = np.abs(bilinear(f[0], xs + d, ys) - f[1]).mean(-1)[m].mean()
+    assert good < 0.006
+    # A flip without the swap breaks the stereo geometry: new left at x - d no longer reproduces.
+    noswap = s["cycle"][:, :, ::-1].astype(np.float64) / 255
+    bad = np.abs(bilinear(noswap[1], xs - d, ys) - noswap[0]).mean(-1)[m].mean()
+    assert bad > 3 * good
+    # Flow direction: the new left_t1 is mirrored right_t1, frames order is kept (t before t+1).
+    np.testing.assert_array_equal(f[2], s["cycle"][3, :, ::-1] / np.float32(255))
+
+
+def test_resize_frames_area_and_linear():
+    x = np.arange(16, dtype=np.float32).reshape(1, 4, 4, 1).repeat(3, -1)
+    small = pipeline.resize_frames(x, 2, 2)
+    np.testing.assert_allclose(small[0, ..., 0], [[2.5, 4.5], [10.5, 12.5]])   # 2x2 block means
+    assert pipeline.resize_frames(x, 8, 8).shape == (1, 8, 8, 3)
+
+
+# ------------------------------------------------------------------------------------------------ the dataset
+
+def test_synthetic_dataset_batches():
+    ds = pipeline.make_train_dataset({"source": "synthetic", "synthetic_num": 8}, global_batch=2, seed=0,
+                                     height=32, width=64, process_index=0, process_count=1)
+    b = next(iter(ds))
+    assert set(b) == {"cycle"} and b["cycle"].shape == (2, 4, 32, 64, 3) and b["cycle"].dtype == np.float32
+    assert 0.0 <= b["cycle"].min() and b["cycle"].max() <= 1.0
+
+
+def test_iterator_resume_returns_same_next_batch():
+    ds = pipeline.make_train_dataset({"augment": True}, global_batch=3, seed=5, height=4, width=6,
+                                     process_index=0, process_count=1, source=_IdSource(10))
+    it = iter(ds)
+    for _ in range(4):                      # crosses an epoch boundary (10 cycles / 3 per batch)
+        next(it)
+    state = it.get_state()
+    expect = [next(it) for _ in range(3)]
+    it2 = iter(ds)
+    it2.set_state(state)
+    for e in expect:
+        np.testing.assert_array_equal(next(it2)["cycle"], e["cycle"])
+
+
+@pytest.mark.slow
+def test_iterator_resume_with_worker_process():
+    cfg = {"augment": True, "num_workers": 1}
+    ds = pipeline.make_train_dataset(cfg, global_batch=2, seed=1, height=4, width=6, process_index=0,
+                                     process_count=1, source=_IdSource(9))
+    it = iter(ds)
+    for _ in range(3):
+        next(it)
+    state = it.get_state()
+    expect = next(it)
+    it.close()
+    it2 = iter(ds)
+    it2.set_state(state)
+    np.testing.assert_array_equal(next(it2)["cycle"], expect["cycle"])
+    it2.close()
+
+
+def test_two_process_shards_disjoint_and_complete():
+    n = 12
+    seen = []
+    for p in range(2):
+        ds = pipeline.make_train_dataset({"augment": False, "num_epochs": 1}, global_batch=2, seed=9,
+                                         height=4, width=6, process_index=p, process_count=2, source=_IdSource(n))
+        ids = [i for b in ds for i in _ids(b)]
+        assert len(ids) == n // 2
+        seen.append(ids)
+    assert not set(seen[0]) & set(seen[1])
+    assert sorted(seen[0] + seen[1]) == list(range(n))
+    # Second epoch: reshuffled, still disjoint and complete.
+    both = []
+    for p in range(2):
+        ds = pipeline.make_train_dataset({"augment": False, "num_epochs": 2}, global_batch=2, seed=9,
+                                         height=4, width=6, process_index=p, process_count=2, source=_IdSource(n))
+        ids = [i for b in ds for i in _ids(b)]
+        both.append(ids[n // 2:])
+        assert ids[: n // 2] == seen[p]
+    assert sorted(both[0] + both[1]) == list(range(n)) and both[0] != seen[0]
+
+
+def test_bad_batch_and_process_arguments():
+    with pytest.raises(ValueError, match="multiple of the process count"):
+        pipeline.make_train_dataset({}, global_batch=3, seed=0, process_index=0, process_count=2,
+                                    source=_IdSource(4))
+
+
+# ------------------------------------------------------------------------------------------------ corrupt data
+
+def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
+    root = make_fake_raw(str(tmp_path), {"2011_09_26_drive_0001": 6}, height=8, width=12)
+    data = os.path.join(root, "2011_09_26", "2011_09_26_drive_0001_sync")
+    bad = os.path.join(data, "image_03", "data", "0000000002.png")
+    truncate_file(bad)                                             # breaks cycles 1 and 2
+    os.remove(os.path.join(data, "image_02", "data", "0000000004.png"))   # removes frame 4 from the listing
+    src = pipeline.make_source({"source": "kitti_raw", "data_dir": root, "split": "all"})
+    assert len(src) == 3                                           # cycles 0, 1, 2 (3 and 4 need frame 4)
+    pipeline.reset_skip_counts()
+    loader = pipeline.LoadCycle(src)
+    with caplog.at_level(logging.WARNING):
+        got = [loader(i)["id"] for i in range(3)]
+    assert got == ["2011_09_26_drive_0001/0000000000"] * 3          # 1 and 2 replaced by the next valid (0)
+    counts = pipeline.skip_counts()
+    assert counts["count"] == 3 and set(counts["paths"]) == {bad}
+    assert bad in caplog.text
+    # A missing file that is listed (deleted after listing) is skipped the same way.
+    os.remove(os.path.join(data, "image_02", "data", "0000000000.png"))
+    with pytest.raises(RuntimeError, match="unreadable"):
+        loader(0)
+    # Through the dataset: no crash, every batch holds the valid cycle, and the skips are counted.
+    pipeline.reset_skip_counts()
+    ds = pipeline.make_train_dataset({"augment": False}, global_batch=1, seed=0, height=8, width=12,
+                                     process_index=0, process_count=1,
+                                     source=pipeline.FileCycleSource(_valid_plus_corrupt(root), root))
+    it = iter(ds)
+    out = [next(it)["cycle"] for _ in range(4)]
+    assert all(o.shape == (1, 4, 8, 12, 3) and np.allclose(o, 7 / 255) for o in out)
+    assert pipeline.skip_counts()["count"] == 2
+
+
+def _valid_plus_corrupt(root):
+    good = os.path.join(root, "good.png")
+    kitti.write_image(good, np.full((8, 12, 3), 7, np.uint8))
+    bad = os.path.join(root, "bad.png")
+    with open(bad, "wb") as fh:
+        fh.write(b"not an image")
+    return [{"id": "bad", "paths": (bad,) * 4, "calib": None}, {"id": "good", "paths": (good,) * 4, "calib": None}]
+
+
+def test_folder_without_cycles_gives_one_clear_error(tmp_path):
+    (tmp_path / "left").mkdir()
+    (tmp_path / "right").mkdir()
+    with pytest.raises(ValueError, match=r"left/\*\.png"):
+        folders.folder_cycles(str(tmp_path))
+    with pytest.raises(ValueError, match="does not exist"):
+        folders.folder_cycles(str(tmp_path / "nope"))
+    with pytest.raises(ValueError, match=str(tmp_path / "left")):
+        pipeline.make_source({"source": "folder", "data_dir": str(tmp_path / "left")})
+
+
+def test_folder_source_png_and_jpeg(tmp_path):
+    rng = np.random.default_rng(0)
+    for side in ("left", "right"):
+        (tmp_path / "seq" / side).mkdir(parents=True)
+        for k in range(4):
+            ext = ".jpg" if k % 2 else ".png"
+            kitti.write_image(str(tmp_path / "seq" / side / f"frame{k}{ext}"),
+                              rng.integers(0, 256, (8, 12, 3), dtype=np.uint8))
+    recs = folders.folder_cycles(str(tmp_path / "seq"))
+    assert [r["id"] for r in recs] == ["seq/frame0", "seq/frame1", "seq/frame2"]
+    assert recs[0]["paths"][1].endswith("right/frame0.png") and recs[0]["paths"][2].endswith("left/frame1.jpg")
+    assert len(folders.folder_cycles(str(tmp_path))) == 3                 # subfolder sequences
+    ds = pipeline.make_train_dataset({"source": "folder", "data_dir": str(tmp_path), "augment": False},
+                                     global_batch=3, seed=0, height=8, width=12, process_index=0, process_count=1)
+    b = next(iter(ds))["cycle"]
+    assert b.shape == (3, 4, 8, 12, 3)
+    # Raw-drive layout works as an own-data folder too.
+    raw = make_fake_raw(str(tmp_path / "raw"), {"2011_09_26_drive_0009": 3}, height=8, width=12)
+    assert len(folders.folder_cycles(raw)) == 2
+    assert len(folders.folder_cycles(os.path.join(raw, "2011_09_26", "2011_09_26_drive_0009_sync"))) == 2
+
+
+def test_shard_batch_onto_mesh():
+    import jax
+    mesh = jax.make_mesh((len(jax.devices()),), ("data",))
+    n = len(jax.devices())
+    batch = {"cycle": np.zeros((n, 4, 4, 6, 3), np.float32)}
+    out = pipeline.shard_batch(batch, mesh)
+    assert out["cycle"].shape == (n, 4, 4, 6, 3)
+    assert len(out["cycle"].sharding.device_set) == n

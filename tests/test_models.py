@@ -1,0 +1,296 @@
+"""Networks: sizes, conventions (padding/stride, heads), PWC-Net ops, against numpy references."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from bridge_jax import models
+from bridge_jax.models import layers, pwcnet, resnet_md
+
+# ---------------------------------------------------------------- numpy references (NHWC, float64)
+
+
+def np_conv(x, k, b=None, stride=1, pad=None, dilation=1):
+    """Direct PyTorch-style conv: x (N,H,W,Ci), k (kh,kw,Ci,Co) HWIO, symmetric zero padding."""
+    kh = k.shape[0]
+    pad = dilation * (kh // 2) if pad is None else pad
+    xp = np.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+    n, hp, wp, _ = xp.shape
+    ho = (hp - dilation * (kh - 1) - 1) // stride + 1
+    wo = (wp - dilation * (k.shape[1] - 1) - 1) // stride + 1
+    out = np.zeros((n, ho, wo, k.shape[3]))
+    for i in range(kh):
+        for j in range(k.shape[1]):
+            patch = xp[:, i * dilation:i * dilation + stride * (ho - 1) + 1:stride,
+                       j * dilation:j * dilation + stride * (wo - 1) + 1:stride]
+            out += patch @ k[i, j]
+    return out + (0 if b is None else b)
+
+
+def np_elu(x):
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+def np_maxpool(x):
+    xp = np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), constant_values=-np.inf)
+    ho, wo = (x.shape[1] + 1) // 2, (x.shape[2] + 1) // 2
+    return np.max([xp[:, i:i + 2 * ho:2, j:j + 2 * wo:2] for i in range(3) for j in range(3)], axis=0)
+
+
+def f32(x):
+    return jnp.asarray(x, jnp.float32)
+
+
+# ---------------------------------------------------------------- sizes
+
+
+def test_param_counts():
+    _, p = models.abstract_init("resnet_md")
+    assert models.param_count(p) == 58_461_416  # upstream MonodepthNet
+    _, p = models.abstract_init("pwcnet")
+    assert models.param_count(p) == 9_374_340  # upstream PWCDCNet (incl. its unused deconv2)
+
+
+@pytest.mark.parametrize("hw", [(256, 512), (128, 256)])
+def test_full_size_output_shapes(hw):
+    h, w = hw
+    graphdef, params = models.abstract_init("resnet_md")
+    out = jax.eval_shape(lambda p, x: models.apply(graphdef, p, x), params,
+                         jax.ShapeDtypeStruct((2, h, w, 6), jnp.float32))
+    for key in ("px", "frac"):
+        assert [o.shape for o in out[key]] == [(2, h >> s, w >> s, 2) for s in range(4)]
+        assert all(o.dtype == jnp.float32 for o in out[key])
+
+
+@pytest.mark.slow
+def test_full_size_forward_128x256_bounded():
+    graphdef, params = models.init(jax.random.key(0), "resnet_md")
+    x = np.random.default_rng(0).uniform(size=(1, 128, 256, 6)).astype(np.float32)
+    out = jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x)
+    for s in range(4):
+        frac, px = np.asarray(out["frac"][s]), np.asarray(out["px"][s])
+        assert frac.shape == (1, 128 >> s, 256 >> s, 2) and np.isfinite(frac).all()
+        assert np.abs(frac).max() <= 0.3
+        np.testing.assert_allclose(px, frac * [256 >> s, 128 >> s], rtol=1e-6)
+
+
+def test_heads_bounded_and_pixel_scaling():
+    """Saturated heads reach but never exceed +-0.3; px = frac * (W_s, H_s) with ch0 = x (width)."""
+    graphdef, params = models.init(jax.random.key(1), "resnet_md_tiny")
+    for name in ("get_disp1", "get_disp2", "get_disp3", "get_disp4"):
+        params[name]["conv1"]["kernel"] = params[name]["conv1"]["kernel"] * 1e4
+    x = np.random.default_rng(1).uniform(size=(2, 64, 128, 6)).astype(np.float32)
+    out = jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x)
+    for s in range(4):
+        frac = np.asarray(out["frac"][s])
+        assert np.abs(frac).max() <= 0.3 + 1e-7
+        assert np.abs(frac).max() > 0.29  # the bound is reached, so it is 0.3 and not larger/smaller
+        np.testing.assert_allclose(out["px"][s][..., 0], frac[..., 0] * (128 >> s), rtol=1e-6)
+        np.testing.assert_allclose(out["px"][s][..., 1], frac[..., 1] * (64 >> s), rtol=1e-6)
+
+
+def test_tiny_uses_same_code_path():
+    g_full, _ = models.abstract_init("resnet_md")
+    g_tiny, p_tiny = models.abstract_init("resnet_md_tiny")
+    full = models.model_config("resnet_md")
+    tiny = models.model_config("resnet_md_tiny")
+    assert set(full) == set(tiny) and models.param_count(p_tiny) < 200_000
+    assert type(nnx.merge(g_full, nnx.State(models.abstract_init("resnet_md")[1]))) is resnet_md.MonodepthResNet
+    assert type(nnx.merge(g_tiny, nnx.State(p_tiny))) is resnet_md.MonodepthResNet
+
+
+def test_bad_config_and_input():
+    with pytest.raises(ValueError, match="unknown model name"):
+        models.model_config("resnet101")
+    with pytest.raises(ValueError, match="unknown resnet_md config keys"):
+        models.model_config("resnet_md", widht=2)
+    graphdef, params = models.init(0, "resnet_md_tiny")
+    with pytest.raises(ValueError, match="multiples of 64"):
+        models.apply(graphdef, params, np.zeros((1, 64, 100, 6), np.float32))
+    with pytest.raises(ValueError, match=r"\(N, H, W, 6\)"):
+        models.apply(graphdef, params, np.zeros((1, 64, 128, 3), np.float32))
+
+
+# ---------------------------------------------------------------- conventions of the building blocks
+
+
+def test_stride2_padding_hand_case():
+    """3x3/2 conv of ones with ones, PyTorch padding 1 on every side: corners see 2x2, edges 2x3, centre 3x3.
+    (Flax 'SAME' would pad (0, 1) and give [[9, 6], [6, 4]].)"""
+    x = jnp.ones((1, 4, 4, 1))
+    k = jnp.ones((3, 3, 1, 1))
+    out = layers.conv2d(x, k, stride=2)
+    np.testing.assert_array_equal(np.asarray(out)[0, ..., 0], [[4, 6], [6, 9]])
+    # 7x7/2 with padding 3 on an 8x8 input: output (0, 0) sees rows/cols 0..3 -> 16 ones.
+    out7 = layers.conv2d(jnp.ones((1, 8, 8, 1)), jnp.ones((7, 7, 1, 1)), stride=2)
+    assert out7.shape == (1, 4, 4, 1) and float(out7[0, 0, 0, 0]) == 16.0
+
+
+@pytest.mark.parametrize("k,stride,dilation", [(7, 2, 1), (3, 2, 1), (3, 1, 1), (1, 1, 1), (1, 2, 1), (3, 1, 4)])
+def test_conv_matches_numpy(rng, k, stride, dilation):
+    x = rng.normal(size=(2, 10, 14, 5))
+    w = rng.normal(size=(k, k, 5, 4))
+    b = rng.normal(size=(4,))
+    out = layers.conv2d(f32(x), f32(w), f32(b), stride=stride, dilation=dilation)
+    np.testing.assert_allclose(out, np_conv(x, w, b, stride, dilation=dilation), rtol=1e-4, atol=1e-4)
+
+
+def test_maxpool_upsample_and_subpixel_upconv(rng):
+    x = rng.normal(size=(2, 7, 10, 3))
+    np.testing.assert_allclose(layers.max_pool_3x3_s2(f32(x)), np_maxpool(x), rtol=1e-6)
+    up = np.repeat(np.repeat(x, 2, axis=1), 2, axis=2)
+    np.testing.assert_allclose(layers.upsample_nearest2x(f32(x)), up, rtol=1e-6)
+    w = rng.normal(size=(3, 3, 3, 4))
+    b = rng.normal(size=(4,))
+    np.testing.assert_allclose(layers.upsample_nearest2x_conv3x3(f32(x), f32(w), f32(b)), np_conv(up, w, b),
+                               rtol=1e-4, atol=1e-4)
+
+
+def test_conv_transpose_matches_scatter_definition(rng):
+    """PyTorch ConvTranspose2d(k=4, s=2, p=1): each input pixel scatters w * x to output (2i - 1 + a, 2j - 1 + b)."""
+    x = rng.normal(size=(1, 3, 5, 2))
+    w = rng.normal(size=(4, 4, 2, 3))  # (kh, kw, in, out) = torch (in, out, kh, kw) permuted (2, 3, 0, 1)
+    full = np.zeros((1, 2 * 3 + 2, 2 * 5 + 2, 3))
+    for i in range(3):
+        for j in range(5):
+            full[0, 2 * i:2 * i + 4, 2 * j:2 * j + 4] += np.einsum("c,abco->abo", x[0, i, j], w)
+    ref = full[:, 1:-1, 1:-1]
+    np.testing.assert_allclose(layers.conv_transpose2d(f32(x), f32(w)), ref, rtol=1e-4, atol=1e-5)
+
+
+def test_torch_default_init_bounds():
+    graphdef, params = models.init(0, "resnet_md_tiny")
+    k = np.asarray(params["layer2"]["0"]["conv2"]["kernel"])  # 3x3, in 16*... -> fan_in = 9 * in
+    bound = 1 / np.sqrt(9 * k.shape[2])
+    assert np.abs(k).max() <= bound and np.abs(k).max() > 0.9 * bound
+
+
+def test_encoder_first_stage_matches_numpy():
+    """Tiny net, constant-ish weights: conv1 7x7/2 + ELU, max-pool, one stride-2 bottleneck with 1x1 shortcut."""
+    cfg = models.model_config("resnet_md_tiny", blocks=[1, 1, 1, 1])
+    graphdef, params = models.init(0, cfg)
+    rng = np.random.default_rng(3)
+    params = jax.tree.map(lambda p: f32(rng.normal(size=p.shape) * 0.2), params)
+    x = rng.uniform(size=(1, 64, 128, 6))
+    model = nnx.merge(graphdef, nnx.State(params))
+    skip1, skip2, skip3 = (np.asarray(a) for a in model.encode(f32(x))[:3])
+    P = jax.tree.map(np.asarray, params)
+
+    def conv(x, p, stride=1):
+        return np_conv(x, p["kernel"].astype(np.float64), p["bias"].astype(np.float64), stride)
+
+    r1 = np_elu(conv(x, P["conv1"], 2))
+    r2 = np_maxpool(r1)
+    blk = P["layer1"]["0"]
+    y = np_elu(conv(r2, blk["conv1"]))
+    y = np_elu(conv(y, blk["conv2"], 2))  # the single (= last) block of the stage carries the stride
+    r3 = np_elu(conv(y, blk["conv3"]) + conv(r2, blk["shortcut"], 2))
+    assert skip1.shape == (1, 32, 64, 8) and skip2.shape == (1, 16, 32, 8) and skip3.shape == (1, 8, 16, 32)
+    for got, ref in ((skip1, r1), (skip2, r2), (skip3, r3)):
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+
+
+def test_bf16_compute_close_to_fp32():
+    graphdef, params = models.init(0, "resnet_md_tiny")
+    x = np.random.default_rng(0).uniform(size=(1, 64, 128, 6)).astype(np.float32)
+    a = jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x)
+    b = jax.jit(lambda p, x: models.apply(graphdef, p, x, dtype=jnp.bfloat16))(params, x)
+    assert b["px"][0].dtype == jnp.float32
+    assert jax.tree.leaves(params)[0].dtype == jnp.float32
+    np.testing.assert_allclose(b["frac"][0], a["frac"][0], atol=2e-2)
+
+
+# ---------------------------------------------------------------- PWC-Net
+
+
+def np_correlation(f1, f2, d):
+    n, h, w, c = f1.shape
+    f2p = np.pad(f2, ((0, 0), (d, d), (d, d), (0, 0)))
+    out = np.zeros((n, h, w, (2 * d + 1) ** 2))
+    for y in range(h):
+        for x in range(w):
+            for dy in range(-d, d + 1):
+                for dx in range(-d, d + 1):
+                    out[:, y, x, (dy + d) * (2 * d + 1) + dx + d] = (
+                        f1[:, y, x] * f2p[:, y + d + dy, x + d + dx]).sum(-1) / c
+    return out
+
+
+def test_correlation_matches_numpy(rng):
+    f1 = rng.normal(size=(2, 6, 7, 5))
+    f2 = rng.normal(size=(2, 6, 7, 5))
+    np.testing.assert_allclose(pwcnet.correlation(f32(f1), f32(f2), 2), np_correlation(f1, f2, 2), rtol=1e-4,
+                               atol=1e-5)
+
+
+def test_correlation_gradient_matches_finite_difference(rng):
+    f1 = f32(rng.normal(size=(1, 4, 5, 3)))
+    f2 = f32(rng.normal(size=(1, 4, 5, 3)))
+    cot = f32(rng.normal(size=(1, 4, 5, 9)))
+    fn = lambda a, b: jnp.sum(pwcnet.correlation(a, b, 1) * cot)  # noqa: E731
+    g1, g2 = jax.grad(fn, argnums=(0, 1))(f1, f2)
+    # analytic: d/df1[y,x,c] = sum_k cot[y,x,k] f2[y+dy,x+dx,c] / C (linear, so exact)
+    e = np.zeros(f1.shape, np.float32)
+    e[0, 2, 3, 1] = 1.0
+    fd = (fn(f1 + e, f2) - fn(f1, f2))
+    np.testing.assert_allclose(float(fd), float(g1[0, 2, 3, 1]), rtol=1e-3)
+    fd2 = (fn(f1, f2 + e) - fn(f1, f2))
+    np.testing.assert_allclose(float(fd2), float(g2[0, 2, 3, 1]), rtol=1e-3)
+
+
+def test_pwc_warp_and_resize_match_numpy(rng):
+    x = rng.normal(size=(1, 5, 6, 2))
+    flow = rng.uniform(-2, 2, size=(1, 5, 6, 2))
+    out = np.asarray(pwcnet.warp_zero(f32(x), f32(flow)))
+    for (y, xx) in [(0, 0), (2, 3), (4, 5), (1, 2)]:
+        px, py = xx + flow[0, y, xx, 0], y + flow[0, y, xx, 1]
+        x0, y0 = int(np.floor(px)), int(np.floor(py))
+        if 0 <= x0 and x0 + 1 <= 5 and 0 <= y0 and y0 + 1 <= 4:
+            ax, ay = px - x0, py - y0
+            ref = ((1 - ay) * ((1 - ax) * x[0, y0, x0] + ax * x[0, y0, x0 + 1])
+                   + ay * ((1 - ax) * x[0, y0 + 1, x0] + ax * x[0, y0 + 1, x0 + 1]))
+        else:
+            ref = np.zeros(2)  # footprint leaves the image: masked like upstream
+        np.testing.assert_allclose(out[0, y, xx], ref, rtol=1e-4, atol=1e-5)
+    # align_corners=True resize: corners preserved, a linear ramp stays linear
+    ramp = np.arange(4, dtype=np.float64)[None, None, :, None] * np.ones((1, 3, 4, 1))
+    up = np.asarray(pwcnet.resize_bilinear_align_corners(f32(ramp), 6, 10))
+    np.testing.assert_allclose(up[0, 0, :, 0], np.linspace(0, 3, 10), rtol=1e-5, atol=1e-6)
+
+
+def test_pwcnet_shapes():
+    cfg = models.model_config("pwcnet", md=1, pyramid=[4, 4, 8, 8, 8, 8], estimator=[8, 8, 8, 8, 8],
+                              context=[8, 8, 8, 8, 8, 8])
+    graphdef, params = models.init(0, cfg)
+    x = np.random.default_rng(0).uniform(size=(1, 64, 128, 6)).astype(np.float32)
+    out = jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x)
+    for s in range(4):
+        assert out["px"][s].shape == (1, 64 >> s, 128 >> s, 2)
+        np.testing.assert_allclose(out["frac"][s] * np.array([128 >> s, 64 >> s]), out["px"][s], rtol=1e-5,
+                                   atol=1e-6)
+
+
+@pytest.mark.slow
+def test_pwcnet_gradient_finite():
+    cfg = models.model_config("pwcnet", md=1, pyramid=[4, 4, 8, 8, 8, 8], estimator=[8, 8, 8, 8, 8],
+                              context=[8, 8, 8, 8, 8, 8])
+    graphdef, params = models.init(0, cfg)
+    x = np.random.default_rng(0).uniform(size=(1, 64, 128, 6)).astype(np.float32)
+
+    def loss(p):
+        m = models.apply(graphdef, p, x)
+        return sum(jnp.mean(jnp.abs(v)) for v in m["px"])
+
+    grads = jax.jit(jax.grad(loss))(params)
+    leaves = jax.tree.leaves(grads)
+    assert all(np.isfinite(np.asarray(g)).all() for g in leaves)
+    assert float(np.abs(np.asarray(grads["conv1a"]["conv"]["kernel"])).max()) > 0  # flows to the pyramid
+
+
+def test_pwcnet_full_size_shapes():
+    graphdef, params = models.abstract_init("pwcnet")
+    out = jax.eval_shape(lambda p, x: models.apply(graphdef, p, x), params,
+                         jax.ShapeDtypeStruct((1, 256, 832, 6), jnp.float32))
+    assert [o.shape for o in out["px"]] == [(1, 256 >> s, 832 >> s, 2) for s in range(4)]
