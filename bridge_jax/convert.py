@@ -156,7 +156,8 @@ class _RestrictedUnpickler(pickle.Unpickler):
     def find_class(self, module, name):
         if (module, name) in _SAFE_GLOBALS:
             return _SAFE_GLOBALS[(module, name)]
-        if module in ("torch", "torch.storage") and (name in _STORAGE_DTYPES or name == "BFloat16Storage"):
+        # GPU-saved checkpoints (upstream trained on CUDA) name their storages torch.cuda.FloatStorage etc.
+        if module in ("torch", "torch.storage", "torch.cuda") and (name in _STORAGE_DTYPES or name == "BFloat16Storage"):
             return _StorageType(name)
         return type(name, (_Opaque,), {"_qualname": f"{module}.{name}"})
 

@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
         exp = export_network(graphdef, params, height=args.height, width=args.width, batch=args.batch,
                              dtype=args.dtype, model_cfg=cfg)
         out = serialize_to_file(exp, args.out)
+    except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
+        print(f"error: {e} (pip install flatbuffers)", file=sys.stderr)
+        return 2
     except (ValueError, OSError) as e:
         print(f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
         return 2

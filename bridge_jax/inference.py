@@ -100,10 +100,23 @@ def resize_weights_align_corners(n_in: int, n_out: int) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def _taps(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Dense `(n_out, n_in)` interpolation weights -> (indices, weights) of the non-zero taps, `(n_out, T)`."""
+    nz = weights != 0
+    t = max(1, int(nz.sum(axis=1).max()))
+    idx = np.argsort(~nz, axis=1, kind="stable")[:, :t]  # non-zero columns first, in order
+    return idx, np.take_along_axis(weights, idx, axis=1)
+
+
 def _resize(x: np.ndarray, wy: np.ndarray, wx: np.ndarray) -> np.ndarray:
-    """Apply separable weights to `(..., h, w, C)`: rows by `wy (H, h)`, columns by `wx (W, w)`."""
-    x = np.einsum("Hh,...hwc->...Hwc", wy, x, optimize=True)
-    return np.einsum("Ww,...Hwc->...HWc", wx, x, optimize=True).astype(np.float32)
+    """Apply separable weights to `(..., h, w, C)`: rows by `wy (H, h)`, columns by `wx (W, w)`.
+
+    Uses only the few non-zero taps per output row/column (a dense matmul would cost O(H h w C))."""
+    x = np.asarray(x, np.float32)
+    iy, ty = _taps(wy)
+    ix, tx = _taps(wx)
+    rows = sum(x[..., iy[:, k], :, :] * ty[:, k, None, None] for k in range(iy.shape[1]))
+    return sum(rows[..., ix[:, k], :] * tx[:, k, None] for k in range(ix.shape[1])).astype(np.float32)
 
 
 def resize_images(images: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -120,6 +133,8 @@ def maps_to_input_resolution(px: np.ndarray, height: int, width: int) -> np.ndar
     Bilinear with align_corners=True, then u *= width / W and v *= height / H (REFERENCE.md §1d).
     """
     H, W = px.shape[-3:-1]
+    if (H, W) == (height, width):
+        return np.asarray(px, np.float32)
     out = _resize(px, resize_weights_align_corners(H, height), resize_weights_align_corners(W, width))
     return out * np.array([width / W, height / H], np.float32)
 

@@ -87,9 +87,9 @@ def check_config(config, num_devices: int, num_processes: int = 1) -> None:
         raise ConfigError(f"config.dtype must be one of {sorted(DTYPES)}, got {config.dtype!r}")
     lcfg = loss_config_of(config)
     rows_per_device = config.global_batch // num_devices * cycle.rows_per_cycle(lcfg.pairs)
-    if config.micro_batch < 0 or (config.micro_batch and rows_per_device % config.micro_batch):
-        raise ConfigError(f"config.micro_batch={config.micro_batch} must be 0 (no micro-batching) or divide the "
-                          f"{rows_per_device} pair-forwards per device")
+    if config.micro_batch < -1 or (config.micro_batch > 0 and rows_per_device % config.micro_batch):
+        raise ConfigError(f"config.micro_batch={config.micro_batch} must be 0 (no micro-batching), -1 (auto) or "
+                          f"divide the {rows_per_device} pair-forwards per device")
     if config.steps_per_epoch == 0 or config.num_train_steps == 0:
         raise ConfigError("config.steps_per_epoch and config.num_train_steps must be positive (or -1 = derived)")
     for name in ("checkpoint_every", "keep_checkpoints", "log_every", "max_nonfinite_in_row"):
@@ -314,6 +314,29 @@ def _load_init_params(path: str, mcfg: dict, abstract_params, separate: bool):
     return params
 
 
+def resolve_micro_batch(config, num_devices: int) -> int:
+    """config.micro_batch, with -1 = auto: 2 pair-forwards per call on CPU (fastest and leanest there, see
+    notes/xla-cpu-performance.md), the whole batch in one jitted step on GPU/TPU."""
+    mb = int(config.micro_batch)
+    if mb != -1:
+        return mb
+    rows = config.global_batch // num_devices * cycle.rows_per_cycle(loss_config_of(config).pairs)
+    return 2 if jax.default_backend() == "cpu" and rows % 2 == 0 and rows > 2 else 0
+
+
+def _mesh_devices(config, num_processes: int) -> list:
+    """All devices (config.num_devices = -1, the default) or the first N local ones (single process only)."""
+    n = int(config.get("num_devices", -1))
+    if n == -1:
+        return list(jax.devices())
+    if num_processes > 1:
+        raise ConfigError("config.num_devices must be -1 (all devices) in a multi-process run")
+    if not 1 <= n <= jax.local_device_count():
+        raise ConfigError(f"config.num_devices={n}: this machine has {jax.local_device_count()} devices "
+                          "(use -1 for all)")
+    return list(jax.local_devices()[:n])
+
+
 def _make_dataset(config, process_index: int, process_count: int):
     from bridge_jax.data import pipeline
     try:
@@ -335,7 +358,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     is_main = proc == 0
 
     ##### Check the input: nothing in the workdir is touched before this section passes ####################
-    num_devices = jax.device_count()
+    devices = _mesh_devices(config, nproc)
+    num_devices = len(devices)
     check_config(config, num_devices, nproc)
     mcfg = model_config_of(config)
     lcfg = loss_config_of(config)
@@ -377,7 +401,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
 
     ##### Shard & transfer #####################################################################################
     # Auto axis type: XLA propagates the batch sharding (the model code has no sharding annotations).
-    mesh = jax.make_mesh((num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+    mesh = jax.make_mesh((num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,), devices=devices)
     replicated = NamedSharding(mesh, P())
     batch_sharding = NamedSharding(mesh, P("data"))
     host_state = train_step.create_train_state(params, tx, jax.random.key_data(state_rng))
@@ -407,7 +431,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
             print(f"Resuming from {ckpt.directory}/{latest} (step {start_step}).", flush=True)
 
     ##### Update step ##########################################################################################
-    step_fn = train_step.build_step(net, losses, lcfg, pairs, tx, schedule, micro_batch=int(config.micro_batch),
+    step_fn = train_step.build_step(net, losses, lcfg, pairs, tx, schedule,
+                                    micro_batch=resolve_micro_batch(config, num_devices),
                                     num_devices=num_devices, state_sharding=state_sharding,
                                     batch_sharding=batch_sharding)
     predictor = Predictor(net, mesh, replicated, batch_sharding)

@@ -19,3 +19,20 @@ import pytest  # noqa: E402
 def rng():
     """A seeded numpy Generator; tests must be deterministic."""
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """A params-only checkpoint of `resnet_md_tiny` with random (not trained) weights of the right shapes.
+
+    Built from `abstract_init` plus numpy draws: much cheaper than a real init on a loaded 2-core CPU.
+    """
+    from bridge_jax import checkpointing, models
+    cfg = models.model_config("resnet_md_tiny")
+    _, abstract = models.abstract_init(cfg)
+    gen = np.random.default_rng(0)
+    params = jax.tree.map(lambda s: (gen.standard_normal(s.shape) / np.sqrt(max(1, np.prod(s.shape[:-1]))))
+                          .astype(np.float32), abstract)
+    d = str(tmp_path_factory.mktemp("ckpt") / "tiny")
+    checkpointing.save_params(d, params, cfg)
+    return d

@@ -36,9 +36,10 @@ class _Tensor:
 class _Writer:
     """Hand-written opcodes for the subset of pickle that torch.save emits for state dicts."""
 
-    def __init__(self, legacy=False):
+    def __init__(self, legacy=False, storage_module="torch"):
         self.out = io.BytesIO()
         self.legacy = legacy
+        self.storage_module = storage_module  # "torch.cuda" for checkpoints saved from GPU tensors
 
     def dump(self, obj):
         self.out.write(b"\x80\x02")
@@ -92,7 +93,8 @@ class _Writer:
         elif isinstance(obj, _Tensor):
             a = obj.array
             stride = tuple(s // a.itemsize for s in a.strides)
-            pid = ("storage", _Global("torch", "FloatStorage"), obj.key, "cpu", int(a.size))
+            location = "cuda:0" if self.storage_module == "torch.cuda" else "cpu"
+            pid = ("storage", _Global(self.storage_module, "FloatStorage"), obj.key, location, int(a.size))
             if self.legacy:
                 pid = pid + (None,)
             self._save(_Global("torch._utils", "_rebuild_tensor_v2"))
@@ -121,7 +123,7 @@ def write_pth(path, obj, tensors, legacy=False):
         f.write(_Writer().dump(0x1950A86A20F9469CFC6C))
         f.write(_Writer().dump(1001))
         f.write(_Writer().dump({"protocol_version": 1001, "little_endian": True}))
-        f.write(_Writer(legacy=True).dump(obj))
+        f.write(_Writer(legacy=True, storage_module="torch.cuda").dump(obj))  # upstream: torch 1.0, GPU
         f.write(_Writer().dump([t.key for t in tensors]))
         for t in tensors:
             f.write(struct.pack("<q", t.array.size) + t.array.tobytes())
@@ -194,7 +196,7 @@ def test_round_trip_first_layers_match_numpy(tmp_path, layout):
         obj = {"epoch": 3, "state_dict": obj, "optimizer": {"state": {}, "param_groups": [{"lr": 1e-4}]},
                "scheduler": evil}
     src = tmp_path / "up.pth"
-    write_pth(src, obj, tensors, legacy=(layout == "legacy"))
+    write_pth(src, obj, tensors, legacy=(layout != "zip"))  # upstream epoch files: torch 1.0 legacy format
     out = tmp_path / "converted"
     assert convert.main(["--from", str(src), "--out", str(out)]) == 0
     assert not marker.exists()

@@ -294,3 +294,14 @@ def test_pwcnet_full_size_shapes():
     out = jax.eval_shape(lambda p, x: models.apply(graphdef, p, x), params,
                          jax.ShapeDtypeStruct((1, 256, 832, 6), jnp.float32))
     assert [o.shape for o in out["px"]] == [(1, 256 >> s, 832 >> s, 2) for s in range(4)]
+
+
+def test_subpixel_upconv_same_maps():
+    """The low-resolution (sub-pixel) decoder path gives the same maps as literal upsample-then-conv."""
+    x = np.random.default_rng(2).uniform(size=(1, 64, 128, 6)).astype(np.float32)
+    outs = []
+    for sub in (True, False):
+        graphdef, params = models.init(0, models.model_config("resnet_md_tiny", subpixel_upconv=sub))
+        outs.append(jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x))
+    for s in range(4):
+        np.testing.assert_allclose(outs[0]["frac"][s], outs[1]["frac"][s], atol=1e-5)

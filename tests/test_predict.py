@@ -12,19 +12,6 @@ from bridge_jax import evaluate, predict
 H, W = 100, 200          # input resolution, deliberately not the working size (128×256)
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    # random params of the right shapes (models.init of this net takes ~1 min on a loaded 2-core CPU)
-    import jax
-    from bridge_jax import checkpointing, models
-    cfg = models.model_config("resnet_md_tiny")
-    _, abstract = models.abstract_init(cfg)
-    gen = np.random.default_rng(0)
-    params = jax.tree.map(lambda s: (gen.standard_normal(s.shape) / np.sqrt(max(1, np.prod(s.shape[:-1]))))
-                          .astype(np.float32), abstract)
-    d = str(tmp_path_factory.mktemp("ckpt") / "tiny")
-    checkpointing.save_params(d, params, cfg)
-    return d
 
 
 @pytest.fixture(scope="module")

@@ -177,19 +177,18 @@ def _put(x, kw):
 
 
 @pytest.fixture(scope="module")
-def eight():
-    """The plain step on the 8-device mesh, 8 cycles (the shape train_and_evaluate compiles in these tests)."""
-    return _setup(num_devices=8)
+def two():
+    """The plain step on a 2-device mesh, 2 cycles (the shape train_and_evaluate compiles in these tests)."""
+    return _setup(num_devices=2)
 
 
 def _fresh(state):
     return jax.tree.map(jnp.copy, state)
 
 
-def test_eight_devices_equal_one_device(eight):
-    state8, step8, _, _, kw8 = eight
+def test_eight_devices_equal_one_device():
+    state8, step8, _, _, kw8 = _setup(num_devices=8)
     state1, step1, _, _, kw1 = _setup(num_devices=1)
-    state8 = _fresh(state8)
     for i in range(2):
         c = _cycles(8, seed=i)
         state1, m1 = step1(state1, _put(c, kw1))
@@ -200,42 +199,42 @@ def test_eight_devices_equal_one_device(eight):
     assert len(jax.tree.leaves(state8["params"])[0].sharding.device_set) == 8
 
 
-def test_one_trace_per_shape(eight):
-    state, step, _, _, kw = eight
+def test_one_trace_per_shape(two):
+    state, step, _, _, kw = two
     state = _fresh(state)
     before = train_step.TRACE_COUNTS["train_step"]
     for i in range(3):
-        state, _ = step(state, _put(_cycles(8, seed=i), kw))
+        state, _ = step(state, _put(_cycles(2, seed=i), kw))
     after_same = train_step.TRACE_COUNTS["train_step"]
     assert after_same - before <= 1  # 0 if an earlier test already ran this shape
-    state, _ = step(state, _put(_cycles(8, seed=5), kw))
+    state, _ = step(state, _put(_cycles(2, seed=5), kw))
     assert train_step.TRACE_COUNTS["train_step"] == after_same
-    step.lower(state, _put(_cycles(16), kw))  # a new shape traces again (lowering is enough to see it)
+    step.lower(state, _put(_cycles(4), kw))  # a new shape traces again (lowering is enough to see it)
     assert train_step.TRACE_COUNTS["train_step"] == after_same + 1
 
 
-def test_nonfinite_step_is_skipped(eight):
-    state, step, _, _, kw = eight
+def test_nonfinite_step_is_skipped(two):
+    state, step, _, _, kw = two
     state = _fresh(state)
-    state, m = step(state, _put(_cycles(8), kw))
+    state, m = step(state, _put(_cycles(2), kw))
     assert int(m["nonfinite"]) == 0 and int(state["step"]) == 1
     before = jax.tree.map(np.asarray, state)
-    bad = _cycles(8, seed=1)
-    bad[3, 1, 5, 7, 0] = np.nan
+    bad = _cycles(2, seed=1)
+    bad[1, 1, 5, 7, 0] = np.nan
     state, m = step(state, _put(bad, kw))
     assert int(m["nonfinite"]) == 1 and not np.isfinite(float(m["loss"]))
     after = jax.tree.map(np.asarray, state)
     for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after)):
         np.testing.assert_array_equal(a, b)
-    state, m = step(state, _put(_cycles(8, seed=2), kw))
+    state, m = step(state, _put(_cycles(2, seed=2), kw))
     assert int(m["nonfinite"]) == 0 and int(state["step"]) == 2
 
 
-def test_micro_batched_step_equals_plain_step(eight):
-    """Maps-first micro-batching on the 8-device mesh: 2 micro-batches of 4 pair-forwards per device."""
-    state, plain, net, lcfg, kw = eight
-    _, micro, _, _, _ = _setup(num_devices=8, micro_batch=4)
-    c = _put(_cycles(8), kw)
+def test_micro_batched_step_equals_plain_step(two):
+    """Maps-first micro-batching on the 2-device mesh: 2 micro-batches of 4 pair-forwards per device."""
+    state, plain, net, lcfg, kw = two
+    _, micro, _, _, _ = _setup(num_devices=2, micro_batch=4)
+    c = _put(_cycles(2), kw)
     (l1, t1), g1 = train_step.make_loss_and_grads(net, losses, lcfg, lcfg.pairs)(state["params"], c)
     (l2, t2), g2 = micro.loss_and_grads(state["params"], c)
     assert float(l1) == pytest.approx(float(l2), abs=1e-5)
@@ -249,7 +248,7 @@ def test_micro_batched_step_equals_plain_step(eight):
     assert float(m1["loss"]) == pytest.approx(float(m2["loss"]), abs=1e-5)
     assert _params_close(s1["params"], s2["params"], 1e-5)
     bad = train_step.MicroBatchedStep(net, losses, lcfg, lcfg.pairs, *train_step.make_optimizer(tiny_config(), 10),
-                                      micro_batch=3, num_devices=8)
+                                      micro_batch=3, num_devices=2)
     with pytest.raises(ValueError, match="micro_batch=3 must divide"):
         bad._split(c)
 
@@ -313,7 +312,8 @@ def test_init_from_loads_params_not_optimizer(fixed_batch_run, tmp_path):
 # ------------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("overrides,match", [
-    ({"global_batch": 12}, "not divisible by the 8 devices"),
+    ({"global_batch": 3}, "not divisible by the 2 devices"),
+    ({"num_devices": 9}, "num_devices"),
     ({"height": 96}, "multiples of 64"),
     ({"micro_batch": 3}, "micro_batch"),
     ({"dtype": "float16"}, "config.dtype"),
@@ -421,7 +421,7 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
         port = s.getsockname()[1]
     common = ("--config.num_train_steps=2", "--config.data.augment=False", "--config.checkpoint_every=2",
               "--config.distributed.enabled=True", f"--config.distributed.coordinator_address=127.0.0.1:{port}",
-              "--config.distributed.num_processes=2")
+              "--config.distributed.num_processes=2", "--config.num_devices=-1")
     wd = str(tmp_path / "multi")
     procs = [subprocess.Popen(train_cli(wd, *common, f"--config.distributed.process_id={i}"),
                               env=subprocess_env(1), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -39,10 +39,12 @@ def enable_compilation_cache():
 
 
 def tiny_config(**overrides):
-    """default.py:local shrunk to a few 64x128 steps of the tiny ResNet-MD (8 cycles), no validation, no tqdm."""
+    """default.py:local shrunk to a few 64x128 steps of the tiny ResNet-MD (2 cycles on 2 devices), no validation."""
     c = default.get_config("local")
     c.height, c.width = H, W
-    c.global_batch = 8  # one cycle per fake device
+    c.num_devices = 2  # of the 8 fake CPU devices: sharded, but a cheap step
+    c.global_batch = 2
+    c.micro_batch = 0
     c.num_train_steps = 4
     c.steps_per_epoch = 100
     c.checkpoint_every = 2
@@ -74,7 +76,7 @@ def subprocess_env(num_devices: int = 8) -> dict:
 
 def train_cli(workdir: str, *overrides: str, config: str = "bridge_jax/configs/default.py:local") -> list[str]:
     """The command line of a tiny training run (same shapes as tiny_config)."""
-    base = [f"--config.height={H}", f"--config.width={W}", "--config.global_batch=8", "--config.steps_per_epoch=100",
+    base = [f"--config.height={H}", f"--config.width={W}", "--config.num_devices=2", "--config.global_batch=2", "--config.micro_batch=0", "--config.steps_per_epoch=100",
             "--config.log_every=1", "--config.image_every=-1", "--config.eval_every=-1",
             "--config.progress_bar=False", "--config.data.synthetic_num=32", "--config.data.prefetch=0"]
     return [sys.executable, "-m", "bridge_jax.train", f"--config={os.path.join(REPO, config)}",

@@ -62,8 +62,9 @@ def get_config(arg=None):
     c.seed = 0
 
     # Micro-batching (maps-first): network pair-forwards per device per call; 0 = whole batch in one jitted
-    # step (the default on GPU/TPU). On XLA:CPU a Python loop of small jitted calls is faster and much leaner.
-    c.micro_batch = 0
+    # step (best on GPU/TPU); -1 = auto: 2 on CPU, where a Python loop of small jitted calls is faster and
+    # much leaner than one big jit (and lax.scan is very slow), 0 elsewhere.
+    c.micro_batch = -1
 
     c.init_from = ""  # params-only init: a params dir (convert/export) or a training workdir / step dir
 
@@ -78,6 +79,9 @@ def get_config(arg=None):
     c.eval_every = 2000  # 0: only at the end; -1: never
     # Held-out synthetic validation set: base seed disjoint from training's `seed`.
     c.eval = ml_collections.ConfigDict(dict(num_samples=16, seed=1_000_003, batch=4))
+
+    # Devices: the batch is sharded over a ('data',) mesh of all devices (-1) or the first N (single process).
+    c.num_devices = -1
 
     # Multi-host: call jax.distributed.initialize() first (arguments empty = auto-detect on TPU/SLURM...).
     c.distributed = ml_collections.ConfigDict(dict(

@@ -69,7 +69,11 @@ def _module(config: Any, rngs: nnx.Rngs) -> nnx.Module:
 
 
 def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
-    """Build the model and return `(graphdef, params)`; params are float32, PyTorch-default-style init.
+    """Build the model and return `(graphdef, params)`; params are float32 with upstream's init laws
+    (resnet_md: PyTorch default uniform; pwcnet: kaiming-normal, zero bias).
+
+    Runs eagerly (draws two flat random vectors, see `layers.init_params_like`), so it is not traceable under
+    `jax.jit` / `jax.eval_shape`: use `abstract_init` for shapes.
 
     Args:
       rng: a `jax.random.key` (or an int seed).
