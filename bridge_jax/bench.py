@@ -21,8 +21,10 @@ also appended to `--json OUT` (JSON lines; written to a temporary name and renam
 measurement in a fresh subprocess so that each peak RSS is that measurement's own.
 
 Train step variants: `--micro-batch 0` is the plain step (`train_step.make_train_step`: one jit, whole batch);
-`--micro-batch k` is the maps-first micro-batched step (`train_step.MicroBatchedStep`, k pair-forwards per call);
-a comma list measures several in one process (RSS is then the maximum over them; use separate runs for memory).
+`--micro-batch k` is the maps-first micro-batched step (`train_step.MicroBatchedStep`, k pair-forwards per call;
+its record also has `phase_s`, the seconds of each phase of one step); `-1` is the trainer's auto choice (the
+default comes from the config); a comma list measures several in one process (RSS is then the maximum over them;
+use separate runs for memory).
 For the micro-batched step "flops" is the model's work (the plain step's XLA count, from its lowered HLO) and
 "flops_executed" adds the extra network forward it runs.
 
@@ -36,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import collections
 import contextlib
 import datetime
 import importlib
@@ -511,7 +512,13 @@ def measure_train_step(config, args, micro_batch: int) -> dict:
     if compile_s is None:  # the micro-batched pieces compile during the first (warm-up) call
         compile_s = timing["warmup_compile_s"] + timing["warmup_trace_s"]
     loss = float(jax.device_get(holder["metrics"]["loss"]))
+    if plain is None and hasattr(step, "_split"):
+        rec["phase_s"] = micro_phases(step, holder["state"], cycles)
     rec.update(timing)
+    if num_devices > 1 and plain is not None:  # a compiled SPMD executable's cost analysis is one device's program
+        rec["flops_per_device"] = flops
+        flops = flops * num_devices if flops is not None else None
+        flops_exec = flops_exec * num_devices if flops_exec is not None else None
     rec.update(compile_s=round(compile_s, 3), flops=flops, flops_executed=flops_exec, xla_temp_bytes=temp,
                final_loss=loss, step_traces={k: v - trace_before.get(k, 0) for k, v in train_step.TRACE_COUNTS.items()
                                              if v - trace_before.get(k, 0)})
@@ -520,6 +527,43 @@ def measure_train_step(config, args, micro_batch: int) -> dict:
     if args.check_single_device and num_devices > 1:
         rec["max_abs_diff_vs_1dev"] = _check_vs_one_device(config, micro_batch, num_devices)
     return rec
+
+
+def micro_phases(step, state, cycles) -> dict:
+    """Seconds of each phase of one maps-first micro-batched step (blocking between phases; compiled already).
+
+    Uses MicroBatchedStep's own jitted pieces in its own order: network forward of every micro-batch, loss and
+    its gradient w.r.t. the maps, the VJP passes (forward again + backward, gradient accumulation), Adam.
+    """
+    import jax
+
+    t = {}
+    t0 = time.perf_counter()
+    xs = jax.block_until_ready(step._split(cycles))
+    params = state["params"]
+    t1 = time.perf_counter()
+    if step.net.separate:
+        maps = [step._forward(params, x, i) for i, x in enumerate(xs)]
+    else:
+        maps = [step._forward(params, x) for x in xs]
+    jax.block_until_ready(maps)
+    t2 = time.perf_counter()
+    loss, terms, dmaps = jax.block_until_ready(step._loss(tuple(maps), cycles))
+    del maps
+    t3 = time.perf_counter()
+    state_copy = jax.block_until_ready(jax.tree.map(lambda a: a.copy(), state))  # _update donates its state
+    t3b = time.perf_counter()
+    acc = step._zeros(params)
+    for i, (x, dm) in enumerate(zip(xs, dmaps)):
+        acc = step._accumulate(acc, params, x, dm, i) if step.net.separate else step._accumulate(acc, params, x, dm)
+    jax.block_until_ready(acc)
+    t4 = time.perf_counter()
+    new_state, metrics = jax.block_until_ready(step._update(state_copy, acc, loss, terms))
+    t5 = time.perf_counter()
+    del new_state, metrics
+    t.update(split=t1 - t0, forward_all=t2 - t1, loss_and_map_grads=t3 - t2, vjp_accumulate_all=t4 - t3b,
+             adam_update=t5 - t4, total=t5 - t0 - (t3b - t3))
+    return {k: round(v, 3) for k, v in t.items()}
 
 
 def _check_vs_one_device(config, micro_batch: int, num_devices: int) -> float:
@@ -596,7 +640,7 @@ def random_maps(num_rows: int, height: int, width: int, num_scales: int = 4, see
     return {"px": tuple(px), "frac": tuple(frac)}
 
 
-def measure_loss(config, args) -> dict:
+def measure_loss(config, args) -> list[dict]:
     """losses.batch_cycle_loss alone (maps given): forward, and forward + gradient w.r.t. the maps."""
     import jax
     import numpy as np
@@ -665,6 +709,7 @@ def run_peer(what: str, config, args) -> dict:
                "--runs", str(args.peer_runs or args.repeats)]
     else:
         cmd = ["infer", "--batch", str(args.pairs), "--warmup", "2", "--runs", str(args.peer_runs or args.repeats)]
+    parent_rss = current_rss_bytes() / 2**30
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "peer.json")
         full = [args.peer_python, harness, *cmd, "--height", str(config.height), "--width", str(config.width),
@@ -683,7 +728,7 @@ def run_peer(what: str, config, args) -> dict:
         other_procs_cpu_frac=peer.get("other_procs_cpu_frac"), compile_s=None, flops=None,
         flops_executed=None, flops_source=None, xla_temp_bytes=None, traces_timed=None, compiles_timed=None,
         recompiled=False, first_call_s=None, rss_timed_peak_gib=None, wall_total_s=round(time.perf_counter() - t0, 1),
-        peer_json=peer)
+        parent_rss_at_spawn_gib=round(parent_rss, 3), peer_json=peer)
     if what == "inference":
         rec["s_per_pair"] = round(peer["median_s"] / args.pairs, 4)
     return rec
@@ -783,7 +828,8 @@ def parse_args(argv=None):
     p.add_argument("--cycles", type=int, default=None, help="cycles per step (per device with --devices)")
     p.add_argument("--dtype", default=None, choices=("float32", "bfloat16"))
     p.add_argument("--micro-batch", default=None,
-                   help="train_step: 0 = plain step, k = maps-first micro-batches of k pair-forwards; comma list")
+                   help="train_step: 0 = plain step, k = maps-first micro-batches of k pair-forwards, -1 = the "
+                        "trainer's auto; comma list (default: the config's micro_batch)")
     p.add_argument("--pairs", type=int, default=1, help="inference: pairs per call")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--warmup", type=int, default=1)
@@ -809,9 +855,17 @@ def _micro_list(args, config) -> list[int]:
     try:
         vals = [int(v) for v in str(text).split(",") if v.strip() != ""]
     except ValueError as e:
-        raise BenchError(f"--micro-batch {text!r}: expected integers like 0 or 0,2") from e
-    if not vals or any(v < 0 for v in vals):
-        raise BenchError(f"--micro-batch {text!r}: expected non-negative integers like 0 or 0,2")
+        raise BenchError(f"--micro-batch {text!r}: expected integers like 0 or 0,2 (-1 = the trainer's auto)") from e
+    if not vals or any(v < -1 for v in vals):
+        raise BenchError(f"--micro-batch {text!r}: expected integers >= -1 like 0 or 0,2 (-1 = the trainer's auto)")
+    if -1 in vals:  # the trainer's "auto" (train.resolve_micro_batch), for the devices this run uses
+        from bridge_jax import train
+
+        cfg = config.copy_and_resolve_references()
+        cfg.micro_batch = -1
+        cfg.global_batch = int(config.global_batch) * int(args.devices or 1)
+        auto = train.resolve_micro_batch(cfg, int(args.devices or 1))
+        vals = [auto if v == -1 else v for v in vals]
     return vals
 
 
@@ -827,6 +881,10 @@ def run(args) -> list[dict]:
     peak = None if args.no_peak else device_peak(str(config.dtype), args.peak_tflops)
     whats = WHATS if args.what == "all" else (args.what,)
     records = []
+    # The upstream runs go first, while this process is still small: Linux carries a parent's RSS high-water mark
+    # into a forked/exec'd child's ru_maxrss, so a peer spawned after our measurement would report our peak.
+    peers = {w: finish(run_peer(w, config, args), env, None) for w in whats
+             if args.peer and w in ("train_step", "inference")}
     for what in whats:
         if what == "train_step":
             plain_flops = None
@@ -838,12 +896,12 @@ def run(args) -> list[dict]:
                     rec["flops_hlo_lowered"], rec["flops"] = rec["flops"], plain_flops
                     rec["flops_source"] = "compiled plain step cost_analysis (same run)"
                 records.append(finish(rec, env, peak))
-            if args.peer:
-                records.append(finish(run_peer("train_step", config, args), env, None))
+            if "train_step" in peers:
+                records.append(peers["train_step"])
         elif what == "inference":
             records.append(finish(measure_inference(config, args), env, peak))
-            if args.peer:
-                records.append(finish(run_peer("inference", config, args), env, None))
+            if "inference" in peers:
+                records.append(peers["inference"])
         elif what == "loss":
             if args.train_step_s is None:
                 for r in records:
@@ -874,15 +932,16 @@ def _add_ratios(records: list[dict]) -> None:
 def run_all_subprocesses(args, argv) -> list[dict]:
     """--what all: each measurement in its own process (honest per-measurement peak RSS)."""
     records = []
-    base = [a for a in argv if a not in ("--what", "all") and not a.startswith("--what=") and not a.startswith("--json")]
-    # drop "--json OUT" pairs
+    # drop "--what X" / "--json OUT" (and their --opt=value forms); each child gets its own --what and --json
     cleaned, skip = [], False
-    for a in base:
+    for a in argv:
         if skip:
             skip = False
             continue
-        if a == "--json":
+        if a in ("--what", "--json"):
             skip = True
+            continue
+        if a.startswith("--what=") or a.startswith("--json="):
             continue
         cleaned.append(a)
     train_s = None

@@ -164,8 +164,8 @@ def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
                  "rng": jax.random.fold_in(state["rng"], 0)}
     new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, state)
     metrics = {"loss": loss, **{f"loss/{k}": v for k, v in terms.items()},
-               "grad_norm": optax.global_norm(grads), "param_norm": optax.global_norm(new_state["params"]),
-               "update_norm": jnp.where(ok, optax.global_norm(updates), 0.0),
+               "grad_norm": optax.tree.norm(grads), "param_norm": optax.tree.norm(new_state["params"]),
+               "update_norm": jnp.where(ok, optax.tree.norm(updates), 0.0),
                "lr": schedule(state["step"]), "nonfinite": (~ok).astype(jnp.int32)}
     return new_state, metrics
 

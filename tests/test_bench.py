@@ -9,7 +9,6 @@ compiling the cycle loss twice costs tens of seconds on 2 cores.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 

@@ -256,7 +256,7 @@ def test_pwc_warp_and_resize_match_numpy(rng):
         np.testing.assert_allclose(out[0, y, xx], ref, rtol=1e-4, atol=1e-5)
     # align_corners=True resize: corners preserved, a linear ramp stays linear
     ramp = np.arange(4, dtype=np.float64)[None, None, :, None] * np.ones((1, 3, 4, 1))
-    up = np.asarray(pwcnet.resize_bilinear_align_corners(f32(ramp), 6, 10))
+    up = np.asarray(pwcnet.resize_bilinear_align_corners(f32(ramp), (6, 10)))
     np.testing.assert_allclose(up[0, 0, :, 0], np.linspace(0, 3, 10), rtol=1e-5, atol=1e-6)
 
 

