@@ -25,6 +25,13 @@ from bridge_jax import losses, models
 KITTI_SPLIT_CYCLES = 28968
 
 
+def model_section(name: str) -> ml_collections.ConfigDict:
+    """models.model_config(name) as a ConfigDict; lists become tuples so that the command line can override
+    them (`--config.model.planes='(16, 32, 64, 64)'`)."""
+    cfg = models.model_config(name)
+    return ml_collections.ConfigDict({k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items()})
+
+
 def get_config(arg=None):
     """Returns the paper's default training config (see module docstring)."""
     c = ml_collections.ConfigDict()
@@ -32,7 +39,7 @@ def get_config(arg=None):
 
     # Network. `separate_networks` = the paper's "without sharing weights" ablation.
     # Every key of models.model_config (so any of them can be overridden from the command line).
-    c.model = ml_collections.ConfigDict(models.model_config("resnet_md"))
+    c.model = model_section("resnet_md")
     c.separate_networks = False
     c.dtype = "float32"  # compute dtype; "bfloat16" keeps params/optimizer in float32
 
@@ -96,7 +103,7 @@ def get_config(arg=None):
 
 def local(c):
     """Shrinks a config for a minutes-long CPU smoke run (the `:local` argument of every config)."""
-    c.model = ml_collections.ConfigDict(models.model_config("resnet_md_tiny"))
+    c.model = model_section("resnet_md_tiny")
     c.height, c.width = 128, 256
     c.num_train_steps = 20
     c.steps_per_epoch = 5

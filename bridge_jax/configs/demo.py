@@ -17,7 +17,7 @@ from bridge_jax.configs import default
 def get_config(arg=None):
     c = default.get_config(None)
     c.variant = "demo"
-    c.model = ml_collections.ConfigDict(models.model_config("resnet_md_tiny"))
+    c.model = default.model_section("resnet_md_tiny")
     c.height, c.width = 128, 256
     c.global_batch = 2
     c.micro_batch = 0  # a tiny model: one jitted step beats many small calls

@@ -13,5 +13,5 @@ from bridge_jax.configs import default
 
 def get_config(arg=None):
     c = default.variant("pwcnet", arg, tasks="flow_stereo", two_warp="none")
-    c.model = ml_collections.ConfigDict(models.model_config("pwcnet"))
+    c.model = default.model_section("pwcnet")
     return c
