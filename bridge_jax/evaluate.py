@@ -66,29 +66,6 @@ class EvaluationError(ValueError):
 # Resolution handling (REFERENCE.md §1d)
 
 
-def _align_corners_grid(src: int, dst: int) -> np.ndarray:
-    if dst == 1:
-        return np.zeros(1, np.float32)
-    return (np.arange(dst, dtype=np.float64) * ((src - 1) / (dst - 1))).astype(np.float32)
-
-
-def resize_bilinear_align_corners(x: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Bilinear resize with ``align_corners=True`` (corner pixels map onto corner pixels).
-
-    Args:
-      x: ``(h, w)`` or ``(h, w, C)`` float.
-    Returns:
-      ``(height, width[, C])`` float32.
-    """
-    x = np.asarray(x, np.float32)
-    h, w = x.shape[:2]
-    map_x = np.broadcast_to(_align_corners_grid(w, width)[None, :], (height, width))
-    map_y = np.broadcast_to(_align_corners_grid(h, height)[:, None], (height, width))
-    out = cv2.remap(x, np.ascontiguousarray(map_x), np.ascontiguousarray(map_y), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape((height, width) + x.shape[2:])
-
-
 def flow_to_gt_resolution(flow_px: np.ndarray, height: int, width: int) -> np.ndarray:
     """Flow predicted at the working size → flow at the GT size, as upstream ``test_flow.py``.
 
@@ -98,9 +75,10 @@ def flow_to_gt_resolution(flow_px: np.ndarray, height: int, width: int) -> np.nd
     Returns:
       ``(height, width, 2)`` float32 flow in GT pixels: bilinear (align_corners=True), u·width/w, v·height/h.
     """
-    h, w = flow_px.shape[:2]
-    out = resize_bilinear_align_corners(flow_px, height, width)
-    return out * np.array([width / w, height / h], np.float32)
+    from bridge_jax import inference  # lazy, like load_predictor: the baselines need no JAX
+
+    # the same rescaling the Predictor applies to its own outputs: one implementation of §1d
+    return inference.maps_to_input_resolution(np.asarray(flow_px, np.float32), height, width)
 
 
 def disparity_to_gt_resolution(disp_px: np.ndarray, height: int, width: int) -> np.ndarray:
