@@ -187,7 +187,12 @@ def lr_consistency_loss(frac_fw, frac_bw, px_fw):
     Args:
       frac_fw: (..., H, W, 2) forward fraction map; frac_bw: backward fraction map; px_fw: forward pixel map.
     """
-    return jnp.mean(jnp.abs(-geometry.warp(frac_bw, px_fw) - frac_fw))
+    return lr_consistency_from_warped(frac_fw, geometry.warp(frac_bw, px_fw))
+
+
+def lr_consistency_from_warped(frac_fw, frac_bw_warped):
+    """mean | -W(frac', D) - frac | given the already warped backward fraction map W(frac', D)."""
+    return jnp.mean(jnp.abs(-frac_bw_warped - frac_fw))
 
 
 # ---------------------------------------------------------------------------------------- 2-warp
@@ -346,8 +351,8 @@ def cycle_loss_parts(maps, cycle, cfg: LossConfig, pyramid=None):
 
         if st:  # left-right consistency, stereo pairs only, fraction units: mean |-W(frac', D) - frac|
             rows = lambda x: jnp.stack([x[i] for i in st])
-            parts[f"lr_fwd/{s}"] = (jnp.mean(jnp.abs(-rows(fr_b_w) - rows(fr_f))), one)
-            parts[f"lr_bwd/{s}"] = (jnp.mean(jnp.abs(-rows(fr_f_w) - rows(fr_b))), one)
+            parts[f"lr_fwd/{s}"] = (lr_consistency_from_warped(rows(fr_f), rows(fr_b_w)), one)
+            parts[f"lr_bwd/{s}"] = (lr_consistency_from_warped(rows(fr_b), rows(fr_f_w)), one)
 
         if cfg.two_warp != "none":
             terms = _two_warp_terms(cfg.two_warp, px_f, px_b, est_f, est_b, m_f, m_b, former, latter, cfg.two_warp_target)
