@@ -810,7 +810,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default=None, help="KITTI: sub-folder (default training); eigen: list file")
     p.add_argument("--out", default=None, help="write results.json / results.md / pictures here")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
-    p.add_argument("--working-size", type=parse_size, default=None, help="HxW of the network input (256x512)")
+    p.add_argument("--working-size", type=parse_size, default=None, help="HxW of the network input (default: the size a training workdir was trained at, else 256x512)")
     p.add_argument("--batch", type=int, default=1, help="frames per inference call")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--pictures", type=int, default=4, help="number of picture panels written to --out")

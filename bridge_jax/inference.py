@@ -231,14 +231,36 @@ class Predictor:
         return {"disp_t": -disp[0, ..., 0], "disp_t1": -disp[1, ..., 0], "flow": flow}
 
 
-def load_predictor(path: str | os.PathLike, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
+def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(height, width) a training workdir (or one of its step dirs) was trained at, from its config.json;
+    None for params-only checkpoints or when unknown."""
+    import json
+
+    from bridge_jax import checkpointing
+
+    try:
+        model_json, _, _ = checkpointing.resolve_checkpoint(path)
+        with open(os.path.join(os.path.dirname(model_json), "config.json")) as f:
+            cfg = json.load(f)
+        return int(cfg["height"]), int(cfg["width"])
+    except (ValueError, OSError, KeyError, TypeError):
+        return None
+
+
+def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
                    dtype: Any = None) -> Predictor:
     """A Predictor from any checkpoint `bridge_jax.checkpointing.load_params` accepts.
 
+    Working size: `height`/`width` if given, else the size a training workdir was trained at (its
+    config.json; a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
     """
     from bridge_jax import checkpointing
 
+    if height is None or width is None:
+        trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
+        height = trained[0] if height is None else height
+        width = trained[1] if width is None else width
     cfg, params = checkpointing.load_params(path)
     separate = bool(cfg.pop("separate_networks", False))
     graphdef, _ = models.abstract_init(cfg)
@@ -247,4 +269,4 @@ def load_predictor(path: str | os.PathLike, *, height: int = DEFAULT_HEIGHT, wid
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate)
 
 
-__all__ = ["Predictor", "load_predictor", "to_rgb_float", "resize_images", "maps_to_input_resolution"]
+__all__ = ["Predictor", "load_predictor", "trained_working_size", "to_rgb_float", "resize_images", "maps_to_input_resolution"]

@@ -516,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video holding left|right side by side")
-    p.add_argument("--working-size", type=evaluate.parse_size, default=None, help="network input HxW (256x512)")
+    p.add_argument("--working-size", type=evaluate.parse_size, default=None, help="network input HxW (default: the size a training workdir was trained at, else 256x512)")
     p.add_argument("--batch", type=int, default=4, help="pairs per inference call")
     p.add_argument("--raw", default="png", help="raw outputs: comma list of png (KITTI 16-bit), npy, or none")
     p.add_argument("--max-flow", type=float, default=None, help="flow colour-wheel radius in px (default: auto)")

@@ -294,13 +294,13 @@ def _load_init_params(path: str, mcfg: dict, abstract_params, separate: bool):
                 src_cfg = json.load(f)
     except (ValueError, OSError) as e:
         raise ConfigError(f"config.init_from={path!r}: {e}") from e
-    src = dict(src_cfg)
-    src.pop("dtype", None)
+    # Keys that do not change the architecture (compute dtype, how fresh params are drawn) are not compared.
+    ignore = ("dtype", "head_init")
+    src = {k: v for k, v in src_cfg.items() if k not in ignore}
     src_separate = bool(src.pop("separate_networks", False))
-    want = {k: v for k, v in mcfg.items() if k != "dtype"}
+    want = {k: v for k, v in mcfg.items() if k not in ignore}
     try:
-        src = models.model_config(src)
-        src.pop("dtype", None)
+        src = {k: v for k, v in models.model_config(src).items() if k not in ignore}
     except ValueError:
         pass
     if src != want:

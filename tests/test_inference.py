@@ -143,3 +143,21 @@ def test_load_predictor_and_bf16(tiny, tmp_path, rng):
     np.testing.assert_allclose(o16, o32, atol=0.05 * max(1.0, np.abs(o32).max()))
     with pytest.raises(ValueError, match="does not exist"):
         inference.load_predictor(tmp_path / "missing")
+
+
+def test_default_working_size_is_the_trained_size(tiny_checkpoint, tmp_path):
+    """A checkpoint with a training config.json beside its model.json runs at the size it was trained at;
+    without one, at the paper's 256x512; an explicit size always wins."""
+    import json
+    import shutil
+    assert inference.trained_working_size(tiny_checkpoint) is None
+    assert (inference.load_predictor(tiny_checkpoint).height, inference.load_predictor(tiny_checkpoint).width) \
+        == (256, 512)
+    d = tmp_path / "trained"
+    shutil.copytree(tiny_checkpoint, d)
+    (d / "config.json").write_text(json.dumps({"height": 64, "width": 192, "variant": "demo"}))
+    assert inference.trained_working_size(d) == (64, 192)
+    p = inference.load_predictor(d)
+    assert (p.height, p.width) == (64, 192)
+    p = inference.load_predictor(d, height=128, width=256)
+    assert (p.height, p.width) == (128, 256)

@@ -305,3 +305,68 @@ def test_subpixel_upconv_same_maps():
         outs.append(jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x))
     for s in range(4):
         np.testing.assert_allclose(outs[0]["frac"][s], outs[1]["frac"][s], atol=1e-5)
+
+
+# ---------------------------------------------------------------- head_init
+
+
+@pytest.mark.parametrize("cfg", [
+    {"name": "resnet_md_tiny"},
+    {"name": "pwcnet", "pyramid": [4, 4, 4, 4, 4, 4], "estimator": [4, 4, 4, 4, 4], "context": [4, 4, 4, 4, 4, 4]},
+])
+def test_head_init_zeros_starts_at_zero_motion(cfg):
+    """head_init="zeros": only the output convs differ from the default draw, and every map is exactly 0
+    (0.3 tanh(0) = 0 for resnet_md; 4 x resize(0) = 0 for PWC-Net) while the default init is not."""
+    _, p_default = models.init(3, cfg)
+    graphdef, p_zero = models.init(3, dict(cfg, head_init="zeros"))
+    heads = resnet_md.HEAD_PREFIXES if cfg["name"].startswith("resnet_md") else pwcnet.HEAD_PREFIXES
+    n_head = 0
+    for name in p_default:
+        a, b = jax.tree.leaves(p_default[name]), jax.tree.leaves(p_zero[name])
+        if name.startswith(heads):
+            n_head += 1
+            assert all(float(jnp.abs(x).max()) == 0.0 for x in b), name
+        else:
+            assert all(np.array_equal(x, y) for x, y in zip(a, b)), name
+    assert n_head == (4 if cfg["name"].startswith("resnet_md") else 6)
+    x = jax.random.uniform(jax.random.key(0), (2, 64, 128, 6))
+    maps = models.apply(graphdef, p_zero, x)
+    assert all(float(jnp.abs(m).max()) == 0.0 for m in maps["px"] + maps["frac"])
+    maps = models.apply(graphdef, p_default, x)
+    assert float(jnp.abs(maps["px"][0]).max()) > 0.01
+    # the zero heads still receive gradients, so training can move them
+    g = jax.grad(lambda p: jnp.sum(models.apply(graphdef, p, x)["px"][0] * x[..., :2]))(p_zero)
+    assert any(float(jnp.abs(v).max()) > 0 for k in p_zero if k.startswith(heads) for v in jax.tree.leaves(g[k]))
+
+
+def test_head_init_rejects_unknown_value():
+    with pytest.raises(ValueError, match="head_init"):
+        models.model_config("resnet_md_tiny", head_init="xavier")
+    with pytest.raises(ValueError, match="head_init"):
+        models.model_config("pwcnet", head_init="torch")
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_dots_weight_grad_conv_matches_numpy(rng, stride, monkeypatch):
+    """The 9-shifted-dots weight gradient (perf option) equals the definition dW[i,j] = sum xpad_shift^T dy,
+    computed in float64 numpy; values and input gradient equal the plain conv's."""
+    x = rng.standard_normal((2, 7, 9, 5))
+    k = rng.standard_normal((3, 3, 5, 4))
+    y_ref = np_conv(x, k, stride=stride)
+    g = rng.standard_normal(y_ref.shape)
+    monkeypatch.setattr(layers, "DOTS_WEIGHT_GRAD_MIN_CHANNELS", 1)
+    assert layers._use_dots_weight_grad(k.shape, 1)
+    f = lambda a, b: jnp.sum(layers.conv2d(a, b, stride=stride) * f32(g))  # noqa: E731
+    np.testing.assert_allclose(np.asarray(layers.conv2d(f32(x), f32(k), stride=stride)), y_ref, atol=1e-4)
+    dx, dk = jax.grad(f, argnums=(0, 1))(f32(x), f32(k))
+    xp = np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    ho, wo = g.shape[1:3]
+    dk_ref = np.zeros_like(k)
+    for i in range(3):
+        for j in range(3):
+            patch = xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
+            dk_ref[i, j] = np.einsum("nhwc,nhwo->co", patch, g)
+    np.testing.assert_allclose(np.asarray(dk), dk_ref, rtol=1e-4, atol=1e-4)
+    monkeypatch.setattr(layers, "DOTS_WEIGHT_GRAD_MIN_CHANNELS", 0)
+    dx_plain = jax.grad(f, argnums=0)(f32(x), f32(k))
+    np.testing.assert_allclose(np.asarray(dx), np.asarray(dx_plain), atol=1e-5)

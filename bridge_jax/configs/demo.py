@@ -1,8 +1,10 @@
 r"""README main job: a small, fast model on the built-in synthetic stereo video (~10 minutes on 2 CPU cores).
 
-Same losses and training code as the paper configs, with a tiny ResNet-MD at 128x256 and a larger learning
-rate, so that learning is visible within minutes: the held-out validation flow EPE falls well below the
-zero-motion baseline (`val/flow_epe_vs_zero` in metrics.jsonl / TensorBoard).
+Same losses and training code as the paper configs, with a tiny ResNet-MD at 64x128, output convs that start
+at zero (`model.head_init="zeros"`: every map starts at the zero-motion solution; from upstream's random head
+init the tiny net sat at or above the zero-motion error for hundreds of steps) and a larger learning rate, so
+that learning is visible within minutes. Watch `val/disp_epe_all` and `val/flow_epe_vs_zero` (metrics.jsonl /
+TensorBoard) against the zero-motion baseline; see experiments/synthetic.md for what a run reaches.
 
   python -m bridge_jax.demo --workdir=work/demo          # train + evaluate + report (what `make demo` runs)
   python -m bridge_jax.train --config=bridge_jax/configs/demo.py --workdir=work/demo   # training only
@@ -18,17 +20,20 @@ def get_config(arg=None):
     c = default.get_config(None)
     c.variant = "demo"
     c.model = default.model_section("resnet_md_tiny")
-    c.height, c.width = 128, 256
+    c.model.head_init = "zeros"
+    # 64x128: 4x fewer pixels than 128x256 make a step ~4x faster (0.2 s vs 0.9 s on 2 cores; the loss, not
+    # the tiny network, dominates), i.e. ~4x more steps in the same 10 minutes.
+    c.height, c.width = 64, 128
     c.global_batch = 2
     c.micro_batch = 0  # a tiny model: one jitted step beats many small calls
-    c.lr = 5e-4
-    c.num_train_steps = 1500
-    c.steps_per_epoch = 500  # lr halves at "epochs" 4, 7, ... = never within the demo's 1500 steps
+    c.lr = 1e-3
+    c.num_train_steps = 2500
+    c.steps_per_epoch = 1000  # lr halves at "epochs" 4, 7, ... = never within the demo's 2500 steps
     c.data.synthetic_num = 20_000
     c.data.num_workers = 0
-    c.checkpoint_every = 250
+    c.checkpoint_every = 500
     c.keep_checkpoints = 2
-    c.log_every = 10
+    c.log_every = 25
     c.image_every = 250
     c.eval_every = 250
     c.eval.num_samples = 16

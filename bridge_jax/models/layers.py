@@ -11,6 +11,8 @@ Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2
 """
 from __future__ import annotations
 
+import functools
+
 import math
 
 import jax
@@ -84,6 +86,8 @@ def conv2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, st
         y = jnp.dot(xs, kernel[0, 0])
     elif _use_im2col(x.shape, kernel.shape, stride, dilation):
         y = _conv_im2col(x, kernel, padding)
+    elif _use_dots_weight_grad(kernel.shape, dilation):
+        y = _conv_dots_wgrad(x, kernel, stride, padding)
     else:
         y = lax.conv_general_dilated(
             x, kernel, window_strides=(stride, stride), padding=[(padding, padding), (padding, padding)],
@@ -112,6 +116,49 @@ def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
     ho, wo = h + 2 * padding - kh + 1, w + 2 * padding - kw + 1
     cols = jnp.concatenate([xp[:, i:i + ho, j:j + wo] for i in range(kh) for j in range(kw)], axis=-1)
     return jnp.dot(cols, kernel.reshape(kh * kw * kernel.shape[2], kernel.shape[3]))
+
+
+DOTS_WEIGHT_GRAD_MIN_CHANNELS = 0
+"""3x3 convs with at least this many input channels get their weight gradient as 9 shifted dots
+(`_conv_dots_wgrad`); 0 = never (XLA's own conv backward). Measured in experiments/results/perf.md §8."""
+
+
+def _use_dots_weight_grad(k_shape, dilation) -> bool:
+    return (DOTS_WEIGHT_GRAD_MIN_CHANNELS > 0 and k_shape[0] == 3 and k_shape[1] == 3 and dilation == 1
+            and k_shape[2] >= DOTS_WEIGHT_GRAD_MIN_CHANNELS)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _conv_dots_wgrad(x, kernel, stride, padding):
+    """`lax.conv` (3x3, any stride) whose weight gradient is 9 matmuls over shifted input views:
+    dW[i, j] = sum_{n,h,w} xpad[n, i + s*h, j + s*w, :]^T dy[n, h, w, :]. XLA:CPU's own backward-filter conv
+    runs at 15-120 GFLOP/s on this network's layers; a dot of (Cin, N*H*W) x (N*H*W, Cout) runs near the
+    matmul peak when the channel counts are large."""
+    return lax.conv_general_dilated(x, kernel, (stride, stride), [(padding, padding)] * 2, dimension_numbers=_DN)
+
+
+def _conv_dots_wgrad_fwd(x, kernel, stride, padding):
+    return _conv_dots_wgrad(x, kernel, stride, padding), (x, kernel)
+
+
+def _conv_dots_wgrad_bwd(stride, padding, res, dy):
+    x, kernel = res
+    _, vjp_x = jax.vjp(lambda a: lax.conv_general_dilated(a, kernel, (stride, stride), [(padding, padding)] * 2,
+                                                          dimension_numbers=_DN), x)
+    (dx,) = vjp_x(dy)
+    n, ho, wo, cout = dy.shape
+    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
+    dy2 = dy.reshape(n * ho * wo, cout)
+    taps = []
+    for i in range(3):
+        for j in range(3):
+            xs = xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
+            taps.append(jnp.dot(xs.reshape(n * ho * wo, -1).T, dy2))
+    dk = jnp.stack(taps).reshape(kernel.shape).astype(kernel.dtype)
+    return dx, dk
+
+
+_conv_dots_wgrad.defvjp(_conv_dots_wgrad_fwd, _conv_dots_wgrad_bwd)
 
 
 def conv_transpose2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, stride: int = 2,

@@ -37,7 +37,12 @@ DEFAULT_CONFIG = {
     "estimator": [128, 128, 96, 64, 32],
     "context": [128, 128, 128, 96, 64, 32],
     "dilations": [1, 2, 4, 8, 16, 1],
+    "head_init": "kaiming_normal",
 }
+HEAD_PREFIXES = ("predict_flow", "dc_conv7")
+"""Top-level parameter names of the convs that output flow; `head_init="zeros"` starts them at zero (every
+level's flow, and the context network's refinement, start at exactly 0)."""
+HEAD_INITS = ("kaiming_normal", "zeros")
 MULTIPLE = 64
 FLOW_SCALE = 20.0
 """PWC-Net's internal flow unit: the warp at level l uses flow * 20 / 2^l (upstream: 0.625, 1.25, 2.5, 5)."""
@@ -208,4 +213,6 @@ def normalize_config(config: Mapping) -> dict:
     for k in ("pyramid", "estimator", "context", "dilations"):
         out[k] = [int(v) for v in out[k]]
     out["md"] = int(out["md"])
+    if out["head_init"] not in HEAD_INITS:
+        raise ValueError(f"model head_init must be one of {list(HEAD_INITS)}, got {out['head_init']!r}")
     return out

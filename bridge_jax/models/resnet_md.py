@@ -36,10 +36,16 @@ DEFAULT_CONFIG = {
     "expansion": 4,
     "decoder": [512, 256, 128, 64, 32, 16],
     "subpixel_upconv": "auto",
+    "head_init": "torch",
 }
 """Full-size (paper) configuration. `decoder` = output widths of up6..up1. `subpixel_upconv` computes a
 decoder's upsample+conv at low resolution (same maths, 4/9 of the FLOPs): True, False (literal upsample then
-conv) or "auto" (by map size, see SUBPIXEL_MIN_PIXELS)."""
+conv) or "auto" (by map size, see SUBPIXEL_MIN_PIXELS). `head_init`: "torch" (upstream: PyTorch's default
+uniform law, like every other layer) or "zeros" (the 2-channel output convs start at zero, so every map
+starts at exactly 0 = the zero-motion solution; see HEAD_PREFIXES)."""
+
+HEAD_PREFIXES = ("get_disp",)
+"""Top-level parameter names of the output convs (what `head_init="zeros"` zeroes)."""
 
 TINY_CONFIG = {
     **DEFAULT_CONFIG,
@@ -51,6 +57,7 @@ TINY_CONFIG = {
 }
 """A ~0.1 M-parameter variant for tests: same code path, same scales, every block type exercised."""
 
+HEAD_INITS = ("torch", "zeros")
 MULTIPLE = 64
 SUBPIXEL_MIN_PIXELS = 2048
 """`subpixel_upconv="auto"` uses the low-resolution form when the decoder input has at least this many pixels
@@ -199,4 +206,6 @@ def normalize_config(config: Mapping) -> dict:
     out.update(config)
     for k in ("planes", "blocks", "decoder"):
         out[k] = [int(v) for v in out[k]]
+    if out["head_init"] not in HEAD_INITS:
+        raise ValueError(f"model head_init must be one of {list(HEAD_INITS)}, got {out['head_init']!r}")
     return out
