@@ -40,6 +40,7 @@ import argparse
 import ast
 import contextlib
 import datetime
+import functools
 import importlib
 import importlib.util
 import json
@@ -54,7 +55,7 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-WHATS = ("train_step", "inference", "loss", "pipeline")
+WHATS = ("train_step", "inference", "loss", "pipeline", "conv_backward")
 
 # Dense peak TFLOP/s per chip, (bf16, float32 as XLA runs it by default), matched by substring of the lower-cased
 # `device_kind`, first match wins. float32: XLA:GPU uses TF32 tensor cores for f32 dots/convs at the default
@@ -679,6 +680,71 @@ def measure_loss(config, args) -> list[dict]:
     return recs
 
 
+# 3x3 conv layers of resnet_md at input H x W as (H divisor, Cin, Cout, stride): encoder bottleneck 3x3s (the
+# stride-2 ones first in their stage), decoder iconvs (concatenated skip + upsampled map widths).
+CONV3X3_LAYERS = ((4, 64, 64, 1), (4, 128, 128, 2), (8, 128, 128, 1), (8, 256, 256, 2), (16, 256, 256, 1),
+                  (16, 512, 512, 2), (32, 512, 512, 1), (16, 514, 128, 1), (8, 258, 64, 1), (4, 130, 32, 1),
+                  (2, 98, 32, 1), (1, 18, 16, 1), (2, 64, 32, 1), (4, 128, 64, 1))
+
+
+def measure_conv_backward(config, args) -> list[dict]:
+    """Gradient of one 3x3 conv w.r.t. input and weights: XLA's own conv backward vs the weight gradient as 9
+    shifted dots (models.layers._conv_dots_wgrad), for the resnet_md layer shapes at the config's size, batch =
+    2 pair-forwards (the CPU micro-batch). Each pair is timed interleaved in the same process."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax import lax
+
+    from bridge_jax.models import layers
+
+    n = 2
+    recs = []
+    for div, ci, co, stride in CONV3X3_LAYERS:
+        h, w = max(1, int(config.height) // div), max(1, int(config.width) // div)
+        rng = np.random.default_rng(0)
+        x = jnp.asarray(rng.standard_normal((n, h, w, ci), np.float32))
+        k = jnp.asarray(rng.standard_normal((3, 3, ci, co), np.float32) * 0.05)
+        g = jnp.asarray(rng.standard_normal((n, (h - 1) // stride + 1, (w - 1) // stride + 1, co), np.float32))
+
+        def loss(a, b, c, kind, s=stride):
+            if kind == "xla":
+                y = lax.conv_general_dilated(a, b, (s, s), [(1, 1)] * 2, dimension_numbers=layers._DN)
+            else:
+                y = layers._conv_dots_wgrad(a, b, s, 1)
+            return jnp.sum(y * c)
+
+        fns = {kind: jax.jit(jax.grad(functools.partial(loss, kind=kind), argnums=(0, 1))) for kind in ("xla", "dots")}
+        timings = {kind: [] for kind in fns}
+        for _ in range(2):  # interleaved halves: both variants see the same machine state
+            for kind, fn in fns.items():
+                timings[kind].append(time_calls(lambda i, fn=fn: fn(x, k, g), repeats=max(1, args.repeats // 2),
+                                                warmup=max(1, args.warmup)))
+        ref, alt = fns["xla"](x, k, g), fns["dots"](x, k, g)
+        rel = float(jnp.abs(ref[1] - alt[1]).max() / jnp.abs(ref[1]).max())
+        base = None
+        for kind in ("xla", "dots"):
+            t = timings[kind]
+            times = t[0]["times_s"] + t[1]["times_s"]
+            flops = _cost_flops(fns[kind].lower(x, k, g).compile().cost_analysis())
+            rec = dict(what="conv_backward", variant=f"{kind} {n}x{h}x{w} {ci}->{co} s{stride}", compile_s=None,
+                       median_s=round(statistics.median(times), 5), min_s=round(min(times), 5),
+                       max_s=round(max(times), 5), times_s=times, first_call_s=t[0]["first_call_s"],
+                       traces_timed=t[0]["traces_timed"] + t[1]["traces_timed"],
+                       compiles_timed=t[0]["compiles_timed"] + t[1]["compiles_timed"],
+                       recompiled=t[0]["recompiled"] or t[1]["recompiled"], flops=flops, flops_executed=flops,
+                       flops_source="compiled cost_analysis", xla_temp_bytes=None,
+                       rss_timed_peak_gib=t[1]["rss_timed_peak_gib"],
+                       other_procs_cpu_frac=t[1]["other_procs_cpu_frac"], layer=[n, h, w, ci, co, stride],
+                       weight_grad=kind, dw_rel_diff_vs_xla=rel if kind == "dots" else 0.0)
+            if kind == "xla":
+                base = rec["min_s"]
+            else:
+                rec["min_time_vs_xla"] = round(rec["min_s"] / base, 3) if base else None
+            recs.append(rec)
+    return recs
+
+
 def measure_pipeline(config, args) -> dict:
     from bridge_jax.data import pipeline
 
@@ -911,6 +977,8 @@ def run(args) -> list[dict]:
             records.extend(finish(r, env, peak) for r in measure_loss(config, args))
         elif what == "pipeline":
             records.append(finish(measure_pipeline(config, args), env, None))
+        elif what == "conv_backward":
+            records.extend(finish(r, env, peak) for r in measure_conv_backward(config, args))
     _add_ratios(records)
     return records
 

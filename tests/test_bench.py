@@ -160,3 +160,18 @@ def test_micro_batched_equals_plain_through_bench_builder():
     s2, m2 = micro(jax.tree.map(jnp.copy, state0), cycles)
     assert abs(float(m1["loss"]) - float(m2["loss"])) <= 1e-5
     assert int(s1["step"]) == int(s2["step"]) == 1 and int(m2["nonfinite"]) == 0
+
+
+def test_conv_backward_records_both_weight_gradients(monkeypatch):
+    """--what conv_backward: per layer shape one XLA and one 9-shifted-dots record, the same weight gradient
+    (checked inside against XLA's) and the time ratio; two small layers keep it quick."""
+    import argparse
+    monkeypatch.setattr(bench, "CONV3X3_LAYERS", ((4, 8, 16, 1), (4, 16, 8, 2)))
+    config = bench.load_config("default:local")
+    recs = bench.measure_conv_backward(config, argparse.Namespace(repeats=2, warmup=1))
+    assert [r["weight_grad"] for r in recs] == ["xla", "dots", "xla", "dots"]
+    assert [r["layer"] for r in recs[::2]] == [[2, 32, 64, 8, 16, 1], [2, 32, 64, 16, 8, 2]]
+    for r in recs:
+        assert r["what"] == "conv_backward" and r["min_s"] <= r["median_s"] <= r["max_s"] and not r["recompiled"]
+        assert r["flops"] > 0 and r["dw_rel_diff_vs_xla"] < 1e-5
+    assert recs[1]["min_time_vs_xla"] == pytest.approx(recs[1]["min_s"] / recs[0]["min_s"], rel=1e-2)
