@@ -575,27 +575,13 @@ def _check_vs_one_device(config, micro_batch: int, num_devices: int) -> float:
     st_n, step_n, c_n, _, _ = build_train_step(config, micro_batch, num_devices)
     cfg1 = config.copy_and_resolve_references()
     cfg1.global_batch = int(config.global_batch) * num_devices
-    st_1, step_1, c_1, _, _ = _single_device_step(cfg1, micro_batch)
+    st_1, step_1, c_1, _, _ = build_train_step(cfg1, micro_batch, 1)
     s_n, m_n = step_n(st_n, c_n)
     s_1, m_1 = step_1(st_1, c_1)
     d = abs(float(m_n["loss"]) - float(m_1["loss"]))
     pd = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
              for a, b in zip(jax.tree.leaves(s_n["params"]), jax.tree.leaves(s_1["params"])))
     return max(d, pd)
-
-
-def _single_device_step(config, micro_batch):
-    import jax
-    import numpy as np
-
-    mcfg, lcfg, graphdef, params, net, losses, train_step = _model_setup(config)
-    tx, schedule = train_step.make_optimizer(config, 1000)
-    state = jax.device_put(train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(1))),
-                           jax.devices()[0])
-    batch = int(config.global_batch)
-    cycles = np.random.default_rng(0).random((batch, 4, config.height, config.width, 3), dtype=np.float32)
-    step = train_step.build_step(net, losses, lcfg, lcfg.pairs, tx, schedule, micro_batch=micro_batch)
-    return state, step, jax.device_put(cycles, jax.devices()[0]), None, None
 
 
 def measure_inference(config, args) -> dict:

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 MODEL_JSON = "model.json"
+CONFIG_JSON = "config.json"  # a training workdir's config (beside its model.json)
 PARAMS_DIR = "params"
 CHECKPOINTS_DIR = "checkpoints"
 STATE_ITEM = "state"

@@ -240,7 +240,7 @@ def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
     try:
         model_json, _, _ = checkpointing.resolve_checkpoint(path)
-        with open(os.path.join(os.path.dirname(model_json), "config.json")) as f:
+        with open(model_json.parent / checkpointing.CONFIG_JSON) as f:
             cfg = json.load(f)
         return int(cfg["height"]), int(cfg["width"])
     except (ValueError, OSError, KeyError, TypeError):

@@ -280,18 +280,8 @@ def _load_init_params(path: str, mcfg: dict, abstract_params, separate: bool):
     """Params from `config.init_from` (params-only dir, training workdir or step dir); architecture checked."""
     if not os.path.exists(path):
         raise ConfigError(f"config.init_from={path!r}: no such file or directory")
-    load_params = getattr(checkpointing, "load_params", None)
     try:
-        if load_params is not None:
-            src_cfg, params = load_params(path)
-        else:  # fallback while the params-only loader is not there: training workdirs only
-            step_dir = checkpointing.find_train_step_dir(path)
-            if step_dir is None:
-                raise ValueError(f"{path}: not a checkpoint (no params/ or checkpoints/<step>/state)")
-            params = checkpointing.restore_train_params(step_dir)
-            root = os.path.dirname(os.path.dirname(step_dir))
-            with open(os.path.join(root, "model.json")) as f:
-                src_cfg = json.load(f)
+        src_cfg, params = checkpointing.load_params(path)
     except (ValueError, OSError) as e:
         raise ConfigError(f"config.init_from={path!r}: {e}") from e
     # Keys that do not change the architecture (compute dtype, how fresh params are drawn) are not compared.
@@ -368,7 +358,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     if os.path.exists(workdir) and not os.path.isdir(workdir):
         raise ConfigError(f"--workdir={workdir} exists and is not a directory")
     model_json = dict(mcfg, **({"separate_networks": True} if config.separate_networks else {}))
-    old_model = os.path.join(workdir, "model.json")
+    old_model = os.path.join(workdir, checkpointing.MODEL_JSON)
     resuming = checkpointing.find_train_step_dir(workdir) is not None
     if resuming and os.path.exists(old_model):
         with open(old_model) as f:
@@ -414,7 +404,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     ##### Workdir: config, checkpoints, resume ##############################################################
     os.makedirs(workdir, exist_ok=True)
     if is_main:
-        _write_json_atomic(os.path.join(workdir, "config.json"), json.loads(config.to_json_best_effort()))
+        _write_json_atomic(os.path.join(workdir, checkpointing.CONFIG_JSON), json.loads(config.to_json_best_effort()))
         _write_json_atomic(old_model, model_json)
     ckpt = checkpointing.TrainCheckpointer(workdir, save_every=config.checkpoint_every,
                                            keep=config.keep_checkpoints, async_save=config.async_checkpoints)

@@ -370,3 +370,12 @@ def test_dots_weight_grad_conv_matches_numpy(rng, stride, monkeypatch):
     monkeypatch.setattr(layers, "DOTS_WEIGHT_GRAD_MIN_CHANNELS", 0)
     dx_plain = jax.grad(f, argnums=0)(f32(x), f32(k))
     np.testing.assert_allclose(np.asarray(dx), np.asarray(dx_plain), atol=1e-5)
+
+
+def test_im2col_conv_path_matches_numpy(rng, monkeypatch):
+    """The small-map / many-channel im2col path of conv2d (forced here) equals the float64 definition."""
+    monkeypatch.setattr(layers, "IM2COL_MIN_CHANNELS", 1)
+    x = rng.standard_normal((2, 5, 7, 6))
+    k = rng.standard_normal((3, 3, 6, 4))
+    assert layers._use_im2col(x.shape, k.shape, 1, 1)
+    np.testing.assert_allclose(np.asarray(layers.conv2d(f32(x), f32(k))), np_conv(x, k), atol=1e-4)

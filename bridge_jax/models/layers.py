@@ -12,7 +12,6 @@ Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2
 from __future__ import annotations
 
 import functools
-
 import math
 
 import jax
@@ -108,13 +107,20 @@ def _use_im2col(x_shape, k_shape, stride, dilation) -> bool:
             and x_shape[3] >= IM2COL_MIN_CHANNELS)
 
 
+def _shifted_views(x: jax.Array, kh: int, kw: int, stride: int, padding: int) -> list[jax.Array]:
+    """The `kh * kw` views of the zero-padded `x (N, H, W, C)` that kernel tap (i, j) sees, row-major over taps,
+    each `(N, H_out, W_out, C)`: view[i * kw + j][n, h, w] = xpad[n, i + stride*h, j + stride*w]."""
+    _, h, w, _ = x.shape
+    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
+    ho, wo = (h + 2 * padding - kh) // stride + 1, (w + 2 * padding - kw) // stride + 1
+    return [xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
+            for i in range(kh) for j in range(kw)]
+
+
 def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
     """Stride-1 conv as `(N*H*W, k*k*Cin) @ (k*k*Cin, Cout)` (same result as `lax.conv`, HWIO kernel)."""
     kh, kw = kernel.shape[:2]
-    n, h, w, _ = x.shape
-    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
-    ho, wo = h + 2 * padding - kh + 1, w + 2 * padding - kw + 1
-    cols = jnp.concatenate([xp[:, i:i + ho, j:j + wo] for i in range(kh) for j in range(kw)], axis=-1)
+    cols = jnp.concatenate(_shifted_views(x, kh, kw, 1, padding), axis=-1)
     return jnp.dot(cols, kernel.reshape(kh * kw * kernel.shape[2], kernel.shape[3]))
 
 
@@ -146,14 +152,8 @@ def _conv_dots_wgrad_bwd(stride, padding, res, dy):
     _, vjp_x = jax.vjp(lambda a: lax.conv_general_dilated(a, kernel, (stride, stride), [(padding, padding)] * 2,
                                                           dimension_numbers=_DN), x)
     (dx,) = vjp_x(dy)
-    n, ho, wo, cout = dy.shape
-    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
-    dy2 = dy.reshape(n * ho * wo, cout)
-    taps = []
-    for i in range(3):
-        for j in range(3):
-            xs = xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
-            taps.append(jnp.dot(xs.reshape(n * ho * wo, -1).T, dy2))
+    dy2 = dy.reshape(-1, dy.shape[-1])
+    taps = [jnp.dot(v.reshape(dy2.shape[0], -1).T, dy2) for v in _shifted_views(x, 3, 3, stride, padding)]
     dk = jnp.stack(taps).reshape(kernel.shape).astype(kernel.dtype)
     return dx, dk
 
