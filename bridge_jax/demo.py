@@ -28,8 +28,12 @@ def _load_config(arg: str | None):
     return demo.get_config(arg)
 
 
-def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None = None) -> dict:
-    """Train + validation set + evaluation; returns a summary dict (paths and headline numbers)."""
+def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None = None,
+        enable_cache: bool = False) -> dict:
+    """Train + validation set + evaluation; returns a summary dict (paths and headline numbers).
+
+    `enable_cache`: turn on the persistent compilation cache in `<workdir>/xla_cache` (what the command line
+    does; JAX keeps the first cache folder of a process, so library callers leave it off)."""
     from bridge_jax import evaluate, train
     from bridge_jax.data import synthetic
 
@@ -42,6 +46,8 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
             node = node[p]
         node[last] = v
     train_dir = os.path.join(workdir, "train")
+    if enable_cache:
+        train.enable_compilation_cache(config, workdir)
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
 
@@ -98,7 +104,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from bridge_jax import evaluate, train
     try:
-        run(args.workdir, config_arg="short" if args.short else None)
+        run(args.workdir, config_arg="short" if args.short else None, enable_cache=True)
     except (train.ConfigError, evaluate.EvaluationError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

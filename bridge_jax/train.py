@@ -541,12 +541,34 @@ def _in_main_thread() -> bool:
 # Command line
 # ##########################################################################################################
 
+def enable_compilation_cache(config, workdir: str) -> str | None:
+    """Turns on JAX's persistent compilation cache for this process (`config.compilation_cache_dir`).
+
+    Only the command-line entry points call this: JAX opens the cache at the process's first compilation and
+    keeps it, so a library caller (or a test running several workdirs in one process) configures it itself.
+    Returns the cache folder, or None when off. An environment variable JAX_COMPILATION_CACHE_DIR wins.
+    """
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]
+    path = config.get("compilation_cache_dir", "auto")
+    if not path:
+        return None
+    if path == "auto":
+        path = os.path.join(workdir, "xla_cache")
+    path = os.path.abspath(os.path.expanduser(path))
+    jax.config.update("jax_compilation_cache_dir", path)
+    # Only executables that took >= 1 s to compile are stored (the train step, eval/inference functions).
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    return path
+
+
 def main(argv):
     from absl import flags
     if len(argv) > 1:
         raise SystemExit(f"error: unexpected arguments {argv[1:]} (options are --config=..., --workdir=...)")
     FLAGS = flags.FLAGS
     try:
+        enable_compilation_cache(FLAGS.config, FLAGS.workdir)
         result = train_and_evaluate(FLAGS.config, FLAGS.workdir)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -289,6 +289,61 @@ def test_pwcnet_gradient_finite():
     assert float(np.abs(np.asarray(grads["conv1a"]["conv"]["kernel"])).max()) > 0  # flows to the pyramid
 
 
+@pytest.mark.parametrize("warp", ["upstream", "pixels"])
+def test_pwcnet_warp_modes_use_the_documented_flow(warp, monkeypatch):
+    """Level l warps image_b's features by deconv(flow_{l+1}) * 20/2^l (upstream) or by the level-(l+1) flow
+    upsampled 2x and doubled (pixels: the motion the loss trains, in level-l pixels). Recorded per level and
+    compared with the formula, the upsampling done in numpy."""
+    cfg = models.model_config("pwcnet", md=1, pyramid=[4, 4, 8, 8, 8, 8], estimator=[8, 8, 8, 8, 8],
+                              context=[8, 8, 8, 8, 8, 8], warp=warp)
+    model = nnx.merge(*models.init(0, cfg))
+    # Non-zero flows at every level: random heads would already give them; add a bias to be sure.
+    for lvl in range(2, 7):
+        head = getattr(model, f"predict_flow{lvl}")
+        head.bias[...] = jnp.array([0.7, -0.4]) * lvl
+    flows, warps = {}, []
+    estimate = model._estimate
+
+    def record_estimate(lvl, x):
+        x, flow = estimate(lvl, x)
+        flows[lvl] = np.asarray(flow, np.float64)
+        return x, flow
+
+    real_warp = pwcnet.warp_zero
+    monkeypatch.setattr(model, "_estimate", record_estimate)
+    monkeypatch.setattr(pwcnet, "warp_zero", lambda x, f: (warps.append(np.asarray(f, np.float64)), real_warp(x, f))[1])
+    pair = np.random.default_rng(3).uniform(size=(1, 64, 128, 6)).astype(np.float32)
+    model(jnp.asarray(pair))
+    assert len(warps) == 4  # levels 5, 4, 3, 2
+    for lvl, got in zip(range(5, 1, -1), warps):
+        coarse = flows[lvl + 1]
+        if warp == "pixels":
+            h, w = got.shape[1:3]
+            hc, wc = coarse.shape[1:3]
+            # align_corners bilinear upsampling in numpy
+            ys = np.arange(h) * ((hc - 1) / (h - 1) if h > 1 else 0.0)
+            xs = np.arange(w) * ((wc - 1) / (w - 1) if w > 1 else 0.0)
+            y0 = np.minimum(np.floor(ys).astype(int), max(hc - 2, 0))
+            x0 = np.minimum(np.floor(xs).astype(int), max(wc - 2, 0))
+            y1 = np.minimum(y0 + 1, hc - 1)
+            x1 = np.minimum(x0 + 1, wc - 1)
+            wy = (ys - y0)[:, None, None]
+            wx = (xs - x0)[None, :, None]
+            c = coarse[0]
+            up = ((1 - wy) * ((1 - wx) * c[y0][:, x0] + wx * c[y0][:, x1])
+                  + wy * ((1 - wx) * c[y1][:, x0] + wx * c[y1][:, x1]))
+            want = 2.0 * up[None]
+        else:
+            want = np.asarray(getattr(model, f"deconv{lvl + 1}")(jnp.asarray(coarse, jnp.float32))) * 20.0 / 2 ** lvl
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5, err_msg=f"level {lvl}")
+    assert np.abs(warps[-1]).max() > 0.1  # a real (non-zero) warp was compared
+
+
+def test_pwcnet_rejects_unknown_warp():
+    with pytest.raises(ValueError, match="warp"):
+        models.model_config("pwcnet", warp="bilinear")
+
+
 def test_pwcnet_full_size_shapes():
     graphdef, params = models.abstract_init("pwcnet")
     out = jax.eval_shape(lambda p, x: models.apply(graphdef, p, x), params,

@@ -20,6 +20,7 @@ import pytest
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import checkpointing, cycle, losses, models, train, train_step
+from bridge_jax.configs import default as default_config
 from tests.train_helpers import H, W, REPO, enable_compilation_cache, subprocess_env, tiny_config, train_cli
 
 
@@ -441,3 +442,24 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
     assert _params_close(multi, single, 1e-5)
     data_files = os.listdir(os.path.join(wd, "checkpoints", "2", "data"))
     assert "process_0-of-2.json" in data_files and "process_1-of-2.json" in data_files
+
+
+def test_compilation_cache_folder_choice(tmp_path, monkeypatch):
+    """The CLI's persistent compile cache: <workdir>/xla_cache by default, off with "", a given folder, and
+    the user's JAX_COMPILATION_CACHE_DIR wins. jax.config.update is recorded, not applied (process-global)."""
+    calls = {}
+    monkeypatch.setattr(train.jax.config, "update", lambda name, value: calls.__setitem__(name, value))
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    wd = str(tmp_path / "wd")
+    cfg = default_config.get_config("local")
+    assert cfg.compilation_cache_dir == "auto"
+    assert train.enable_compilation_cache(cfg, wd) == os.path.join(wd, "xla_cache")
+    assert calls["jax_compilation_cache_dir"] == os.path.join(wd, "xla_cache")
+    calls.clear()
+    cfg.compilation_cache_dir = ""
+    assert train.enable_compilation_cache(cfg, wd) is None and not calls
+    cfg.compilation_cache_dir = str(tmp_path / "elsewhere")
+    assert train.enable_compilation_cache(cfg, wd) == str(tmp_path / "elsewhere")
+    calls.clear()
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/env/cache")
+    assert train.enable_compilation_cache(cfg, wd) == "/env/cache" and not calls

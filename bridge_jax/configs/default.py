@@ -90,6 +90,11 @@ def get_config(arg=None):
     # Devices: the batch is sharded over a ('data',) mesh of all devices (-1) or the first N (single process).
     c.num_devices = -1
 
+    # Persistent XLA compilation cache, set by the command-line entry points (JAX opens it once per process):
+    # "auto" = <workdir>/xla_cache, so a resumed run (after SIGTERM, preemption or a crash) reuses the compiled
+    # train step instead of compiling it again; "" = off; else a folder. JAX_COMPILATION_CACHE_DIR, if set, wins.
+    c.compilation_cache_dir = "auto"
+
     # Multi-host: call jax.distributed.initialize() first (arguments empty = auto-detect on TPU/SLURM...).
     c.distributed = ml_collections.ConfigDict(dict(
             enabled=False, coordinator_address="", num_processes=0, process_id=-1))

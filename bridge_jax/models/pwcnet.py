@@ -38,11 +38,21 @@ DEFAULT_CONFIG = {
     "context": [128, 128, 128, 96, 64, 32],
     "dilations": [1, 2, 4, 8, 16, 1],
     "head_init": "kaiming_normal",
+    "warp": "upstream",
 }
 HEAD_PREFIXES = ("predict_flow", "dc_conv7")
 """Top-level parameter names of the convs that output flow; `head_init="zeros"` starts them at zero (every
 level's flow, and the context network's refinement, start at exactly 0)."""
 HEAD_INITS = ("kaiming_normal", "zeros")
+WARPS = ("upstream", "pixels")
+"""How level l warps image_b's features (config key `warp`):
+
+* `upstream`: by the transposed-conv upsampled flow times 20/2^l (PWC-Net's flow unit, 1/20 full-resolution
+  pixels). But the loss trains each level's flow as *level-l pixels* (scale s = level s+2, times 4, resized),
+  so these warps are 5, 2.5, 1.25 and 0.625x (levels 2..5) the motion the same network reports: the warp and
+  the loss disagree unless the deconvs learn to undo it. Kept for converted upstream checkpoints.
+* `pixels`: by the level-(l+1) flow bilinearly upsampled 2x and doubled (level-l pixels), the warp the loss
+  implies. The deconv output still feeds the estimator, so parameters are the same in both modes."""
 MULTIPLE = 64
 FLOW_SCALE = 20.0
 """PWC-Net's internal flow unit: the warp at level l uses flow * 20 / 2^l (upstream: 0.625, 1.25, 2.5, 5)."""
@@ -126,6 +136,7 @@ class PWCNet(nnx.Module):
     def __init__(self, config: Mapping, *, rngs: nnx.Rngs):
         pyr, est, ctx, dil = (list(config[k]) for k in ("pyramid", "estimator", "context", "dilations"))
         self.md = int(config["md"])
+        self.warp = config.get("warp", "upstream")
         if len(pyr) != 6 or len(est) != 5 or len(ctx) != 6 or len(dil) != 6:
             raise ValueError("pwcnet config needs 6 pyramid widths, 5 estimator widths, 6 context widths/dilations")
         cin = 3
@@ -180,7 +191,12 @@ class PWCNet(nnx.Module):
         up_flow = up_feat = None
         for lvl in range(6, 1, -1):
             if lvl < 6:
-                warped = warp_zero(f2[lvl - 1], up_flow * (FLOW_SCALE / 2 ** lvl))
+                if self.warp == "pixels":
+                    hl, wl = f1[lvl - 1].shape[1:3]
+                    warp_flow = 2.0 * resize_bilinear_align_corners(flows[lvl + 1], (hl, wl))
+                else:
+                    warp_flow = up_flow * (FLOW_SCALE / 2 ** lvl)
+                warped = warp_zero(f2[lvl - 1], warp_flow)
                 corr = leaky_relu(correlation(f1[lvl - 1], warped, self.md))
                 x = jnp.concatenate([corr, f1[lvl - 1], up_flow, up_feat], axis=-1)
             x, flow = self._estimate(lvl, x)
@@ -215,4 +231,6 @@ def normalize_config(config: Mapping) -> dict:
     out["md"] = int(out["md"])
     if out["head_init"] not in HEAD_INITS:
         raise ValueError(f"model head_init must be one of {list(HEAD_INITS)}, got {out['head_init']!r}")
+    if out["warp"] not in WARPS:
+        raise ValueError(f"model warp must be one of {list(WARPS)}, got {out['warp']!r}")
     return out
