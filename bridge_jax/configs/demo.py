@@ -2,9 +2,10 @@ r"""README main job: a small, fast model on the built-in synthetic stereo video 
 
 Same losses and training code as the paper configs, with a tiny ResNet-MD at 64x128, output convs that start
 at zero (`model.head_init="zeros"`: every map starts at the zero-motion solution; from upstream's random head
-init the tiny net sat at or above the zero-motion error for hundreds of steps) and a larger learning rate, so
-that learning is visible within minutes. Watch `val/disp_epe_all` and `val/flow_epe_vs_zero` (metrics.jsonl /
-TensorBoard) against the zero-motion baseline; see experiments/synthetic.md for what a run reaches.
+init the tiny net sat at or above the zero-motion error for hundreds of steps) and a larger learning rate
+(1e-3, halved at steps 1000 and 1750), so that learning is visible within minutes. Watch `val/disp_epe_all`
+and `val/flow_epe_vs_zero` (metrics.jsonl / TensorBoard) against the zero-motion baseline; see
+experiments/synthetic.md for what a run reaches.
 
   python -m bridge_jax.demo --workdir=work/demo          # train + evaluate + report (what `make demo` runs)
   python -m bridge_jax.train --config=bridge_jax/configs/demo.py --workdir=work/demo   # training only
@@ -28,7 +29,10 @@ def get_config(arg=None):
     c.micro_batch = 0  # a tiny model: one jitted step beats many small calls
     c.lr = 1e-3
     c.num_train_steps = 2500
-    c.steps_per_epoch = 1000  # lr halves at "epochs" 4, 7, ... = never within the demo's 2500 steps
+    # The paper's step schedule, compressed: 250-step "epochs", so the lr halves at the starts of epochs 4 and 7
+    # (steps 1000 and 1750). Against a constant 1e-3, the validation flow EPE then falls steadily over the last
+    # third (0.92, 0.90, 0.88, 0.87x zero motion at steps 1750-2500, instead of jumping between 0.84 and 1.12x).
+    c.steps_per_epoch = 250
     c.data.synthetic_num = 20_000
     c.data.num_workers = 0
     c.checkpoint_every = 500
