@@ -551,6 +551,8 @@ def enable_compilation_cache(config, workdir: str) -> str | None:
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return os.environ["JAX_COMPILATION_CACHE_DIR"]
     path = config.get("compilation_cache_dir", "auto")
+    if not isinstance(path, str):
+        raise ConfigError(f"config.compilation_cache_dir must be a folder, 'auto' or '' (off), got {path!r}")
     if not path:
         return None
     if path == "auto":

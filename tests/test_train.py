@@ -461,5 +461,7 @@ def test_compilation_cache_folder_choice(tmp_path, monkeypatch):
     cfg.compilation_cache_dir = str(tmp_path / "elsewhere")
     assert train.enable_compilation_cache(cfg, wd) == str(tmp_path / "elsewhere")
     calls.clear()
+    with pytest.raises(train.ConfigError, match="compilation_cache_dir"):
+        train.enable_compilation_cache({"compilation_cache_dir": 5}, wd)
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/env/cache")
     assert train.enable_compilation_cache(cfg, wd) == "/env/cache" and not calls
