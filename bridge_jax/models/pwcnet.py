@@ -136,7 +136,7 @@ class PWCNet(nnx.Module):
     def __init__(self, config: Mapping, *, rngs: nnx.Rngs):
         pyr, est, ctx, dil = (list(config[k]) for k in ("pyramid", "estimator", "context", "dilations"))
         self.md = int(config["md"])
-        self.warp = config.get("warp", "upstream")
+        self.warp = config["warp"]  # normalize_config fills the default
         if len(pyr) != 6 or len(est) != 5 or len(ctx) != 6 or len(dil) != 6:
             raise ValueError("pwcnet config needs 6 pyramid widths, 5 estimator widths, 6 context widths/dilations")
         cin = 3
