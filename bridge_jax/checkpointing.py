@@ -14,7 +14,9 @@ from __future__ import annotations
 # Params-only checkpoints (model worker). Self-contained: helpers below are private to this section.
 # ==========================================================================================================
 
+import contextlib
 import json
+import logging
 import os
 import shutil
 import uuid
@@ -86,11 +88,30 @@ def _read_model_json(path: Path) -> dict:
     return cfg
 
 
+class _DropItemDirMetadataWarning(logging.Filter):
+    """orbax warns "Metadata file does not exist: <step>/state/_CHECKPOINT_METADATA" when an item dir of a
+    CheckpointManager step is read directly: that file lives one level up, in the step dir, so for our
+    layouts the warning is noise that every `predict` / `evaluate` on a training workdir would print."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Metadata file does not exist")
+
+
+@contextlib.contextmanager
+def _quiet_item_dir_metadata():
+    logger, flt = logging.getLogger("absl"), _DropItemDirMetadataWarning()
+    logger.addFilter(flt)
+    try:
+        yield
+    finally:
+        logger.removeFilter(flt)
+
+
 def _restore_tree(path: Path, subtree: str | None = None) -> Any:
     """Restore an orbax PyTree checkpoint at `path` as numpy arrays (optionally only the top-level `subtree`)."""
     import orbax.checkpoint as ocp
 
-    with ocp.PyTreeCheckpointer() as ckptr:
+    with _quiet_item_dir_metadata(), ocp.PyTreeCheckpointer() as ckptr:
         meta = ckptr.metadata(path)
         tree = meta.item_metadata.tree if hasattr(meta, "item_metadata") else meta.tree
         if subtree is not None:

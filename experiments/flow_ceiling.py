@@ -1,0 +1,184 @@
+"""What limits the demo's flow: priors, a supervised ceiling, and whether a trained net matches at all.
+
+Three measurements on the built-in synthetic data at the demo's 64x128 (held-out cycles = the training loop's
+validation seeds, `config.eval.seed`); every EPE is the per-image mean over GT-valid (or noc) pixels, as a ratio
+of the zero-motion EPE. Results: experiments/results/train_bench.md (session 4).
+
+  # 1. what position-only guesses and oracles score (no network)
+  python experiments/flow_ceiling.py priors
+  # 2. the same network trained WITH ground truth (L2 endpoint error) for the demo's step budget
+  python experiments/flow_ceiling.py supervised --rows flow --mask noc --steps 1500
+  python experiments/flow_ceiling.py supervised --rows flow_stereo --mask noc --steps 1500 --lr 3e-4
+  python experiments/flow_ceiling.py supervised --rows flow --model pwcnet --overrides '{"warp": "pixels"}'
+  # 3. a trained checkpoint: does it match, or predict from one image? (right image replaced by the left)
+  python experiments/flow_ceiling.py matching --workdir work/demo/train
+
+Each run prints JSON lines (one per evaluation) for experiments/results/raw/.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from bridge_jax.data import synthetic
+
+H, W = 64, 128
+TRAIN_SEED, VAL_SEED = 0, 1  # demo config: seed 0 (training), eval.seed 1 (validation)
+
+
+def render(seed: int, n: int) -> list[dict]:
+    return [synthetic.render_sample(synthetic.sample_seed(seed, i), H, W) for i in range(n)]
+
+
+def flow_ratio(samples, pred_fn, mask_key="valid_flow") -> float:
+    """mean over images of EPE(pred) / mean over images of EPE(zero), on `mask_key` pixels."""
+    e, z = [], []
+    for s in samples:
+        m = s[mask_key]
+        e.append(np.linalg.norm(pred_fn(s) - s["flow"], axis=-1)[m].mean())
+        z.append(np.linalg.norm(s["flow"], axis=-1)[m].mean())
+    return float(np.mean(e) / np.mean(z))
+
+
+def priors(args) -> None:
+    train, val = render(TRAIN_SEED, args.train_samples), render(VAL_SEED, args.val_samples)
+    flows = np.stack([s["flow"] for s in train])
+    valid = np.stack([s["valid_flow"] for s in train])
+    mean_field = (flows * valid[..., None]).sum(0) / np.maximum(valid.sum(0), 1)[..., None]
+    median_field = np.nan_to_num(np.nanmedian(np.where(valid[..., None], flows, np.nan), axis=0))
+    bh, bw = int(np.ceil(0.1 * H)), int(np.ceil(0.1 * W))
+    inside = np.zeros((H, W), bool)
+    inside[bh:-bh, bw:-bw] = True  # the loss's border band (LossConfig.border_ratio = 0.1) excluded
+    rows = {
+        "zero_epe_all_px": float(np.mean([np.linalg.norm(s["flow"], axis=-1)[s["valid_flow"]].mean() for s in val])),
+        "mean_field": flow_ratio(val, lambda s: mean_field),
+        "median_field": flow_ratio(val, lambda s: median_field),
+        "gt_on_noc_zero_elsewhere": flow_ratio(val, lambda s: np.where(s["noc_flow"][..., None], s["flow"], 0)),
+        "gt_on_noc_inside_border_zero_elsewhere": flow_ratio(
+            val, lambda s: np.where((s["noc_flow"] & inside)[..., None], s["flow"], 0)),
+        "gt_on_noc_median_field_elsewhere": flow_ratio(
+            val, lambda s: np.where(s["noc_flow"][..., None], s["flow"], median_field)),
+        "noc_fraction_of_valid": float(np.mean([s["noc_flow"][s["valid_flow"]].mean() for s in val])),
+    }
+    print(json.dumps({"what": "flow_priors", "size": [H, W], "val_samples": len(val), **rows}))
+
+
+def _pair(a, b):
+    return np.concatenate([a, b], axis=-1)
+
+
+def supervised(args) -> None:
+    import jax
+    import jax.numpy as jnp
+    import optax
+    from bridge_jax import models
+    from bridge_jax.configs import default
+
+    mcfg = dict(default.model_section(args.model))
+    mcfg["head_init"] = "zeros"  # as the demo
+    mcfg.update(json.loads(args.overrides))
+    graphdef, params = models.init(0, mcfg)
+    train, val = render(TRAIN_SEED, args.train_samples), render(VAL_SEED, args.val_samples)
+    with_stereo = args.rows == "flow_stereo"
+
+    def rows(s):
+        """Inputs (left_t, left_t1) [+ (left_t, right_t)], GT maps and masks (disparity map = (-d, 0))."""
+        f = s["cycle"].astype(np.float32) / 255.0
+        x, g, m = [_pair(f[0], f[2])], [s["flow"]], [s[f"{args.mask}_flow"]]
+        if with_stereo:
+            x.append(_pair(f[0], f[1]))
+            g.append(np.stack([-s["disp_t"], np.zeros_like(s["disp_t"])], -1))
+            m.append(s[f"{args.mask}_disp_t"])
+        return np.stack(x), np.stack(g), np.stack(m).astype(np.float32)
+
+    tx = optax.adam(args.lr)
+    opt = tx.init(params)
+
+    def loss_fn(p, x, g, m):
+        px = models.apply(graphdef, p, x)["px"][0]
+        epe = jnp.sqrt(jnp.sum((px - g) ** 2, -1) + 1e-6)
+        return jnp.sum(epe * m) / jnp.sum(m)
+
+    @jax.jit
+    def step(p, o, x, g, m):
+        loss, grads = jax.value_and_grad(loss_fn)(p, x, g, m)
+        updates, o = tx.update(grads, o, p)
+        return optax.apply_updates(p, updates), o, loss
+
+    forward = jax.jit(lambda p, x: models.apply(graphdef, p, x)["px"][0])
+
+    def evaluate(p, samples):
+        flow = {}
+        for s in samples:  # one forward per sample: (left_t, left_t1), (left_t, right_t), (left_t, left_t)
+            f = s["cycle"].astype(np.float32) / 255.0
+            flow[s["seed"]] = np.asarray(forward(p, np.stack([_pair(f[0], f[2]), _pair(f[0], f[1]), _pair(f[0], f[0])])))
+        mkey = f"{args.mask}_flow"
+        ratio = flow_ratio(samples, lambda s: flow[s["seed"]][0], mkey)
+        disp = [np.abs(-flow[s["seed"]][1][..., 0] - s["disp_t"])[s["valid_disp_t"]].mean() for s in samples]
+        disp_same = [np.abs(-flow[s["seed"]][2][..., 0] - s["disp_t"])[s["valid_disp_t"]].mean() for s in samples]
+        return ratio, float(np.mean(disp)), float(np.mean(disp_same))
+
+    rng = np.random.default_rng(0)
+    t0 = time.time()
+    for it in range(args.steps + 1):
+        batch = [rows(train[i]) for i in rng.integers(0, len(train), args.batch)]
+        x, g, m = (np.concatenate([b[k] for b in batch]) for k in range(3))
+        if it % args.eval_every == 0:
+            ratio, disp, disp_same = evaluate(params, val)
+            train_ratio = evaluate(params, train[:32])[0]
+            print(json.dumps({"what": "supervised", "model": args.model, "overrides": args.overrides, "rows": args.rows,
+                              "mask": args.mask, "lr": args.lr, "step": it, f"val_flow_{args.mask}_vs_zero": round(ratio, 4),
+                              f"train_flow_{args.mask}_vs_zero": round(train_ratio, 4), "val_disp_epe": round(disp, 4),
+                              "val_disp_epe_right_replaced_by_left": round(disp_same, 4),
+                              "seconds": round(time.time() - t0, 1)}), flush=True)
+        params, opt, _ = step(params, opt, x, g, m)
+
+
+def matching(args) -> None:
+    from bridge_jax.inference import load_predictor
+
+    pred = load_predictor(args.workdir, height=H, width=W)
+    val = render(VAL_SEED, args.val_samples)
+    out = {}
+    for name, b_index in (("real", None), ("b_replaced_by_a", 0)):
+        disp, flow = {}, {}
+        for s in val:
+            f = s["cycle"]
+            right = f[1] if b_index is None else f[0]
+            later = f[2] if b_index is None else f[0]
+            disp[s["seed"]] = -pred.predict_pair(f[0], right, task="stereo")[..., 0]
+            flow[s["seed"]] = pred.predict_pair(f[0], later, task="flow")
+        out[f"disp_epe_{name}"] = float(np.mean([np.abs(disp[s["seed"]] - s["disp_t"])[s["valid_disp_t"]].mean() for s in val]))
+        out[f"flow_vs_zero_{name}"] = flow_ratio(val, lambda s: flow[s["seed"]])
+    out["zero_disp_epe"] = float(np.mean([s["disp_t"][s["valid_disp_t"]].mean() for s in val]))
+    print(json.dumps({"what": "matching", "workdir": args.workdir, "val_samples": len(val), **out}))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("priors", "supervised", "matching"):
+        p = sub.add_parser(name)
+        p.add_argument("--val-samples", type=int, default=32)
+        p.add_argument("--train-samples", type=int, default=512)
+    s = sub.choices["supervised"]
+    s.add_argument("--model", default="resnet_md_tiny")
+    s.add_argument("--overrides", default="{}", help="JSON of model config keys")
+    s.add_argument("--rows", choices=("flow", "flow_stereo"), default="flow")
+    s.add_argument("--mask", choices=("valid", "noc"), default="noc")
+    s.add_argument("--lr", type=float, default=1e-3)
+    s.add_argument("--steps", type=int, default=1500)
+    s.add_argument("--batch", type=int, default=2)
+    s.add_argument("--eval-every", type=int, default=250)
+    sub.choices["matching"].add_argument("--workdir", required=True)
+    args = ap.parse_args(argv)
+    {"priors": priors, "supervised": supervised, "matching": matching}[args.cmd](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
