@@ -1,4 +1,4 @@
-r"""README main job: a small, fast model on the built-in synthetic stereo video (~10 minutes on 2 CPU cores).
+r"""README main job: a small, fast model on the built-in synthetic stereo video (8-14 minutes on 2 CPU cores).
 
 Same losses and training code as the paper configs, with a tiny ResNet-MD at 64x128, output convs that start
 at zero (`model.head_init="zeros"`: every map starts at the zero-motion solution; from upstream's random head
