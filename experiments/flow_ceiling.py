@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 
+from bridge_jax import metrics as M
 from bridge_jax.data import synthetic
 
 H, W = 64, 128
@@ -35,14 +36,29 @@ def render(seed: int, n: int) -> list[dict]:
     return [synthetic.render_sample(synthetic.sample_seed(seed, i), H, W) for i in range(n)]
 
 
-def flow_ratio(samples, pred_fn, mask_key="valid_flow") -> float:
-    """mean over images of EPE(pred) / mean over images of EPE(zero), on `mask_key` pixels."""
-    e, z = [], []
+def mean_epe(samples, pred_fn, task: str = "flow", mask_key: str | None = None) -> float:
+    """Per-image mean EPE of `pred_fn(sample)` (flow `(H, W, 2)` or disparity `(H, W)`, pixels) against the
+    sample's GT, on `mask_key` pixels (default: GT-valid), computed by `bridge_jax.metrics` as in validation."""
+    acc = M.MetricAccumulator()
     for s in samples:
-        m = s[mask_key]
-        e.append(np.linalg.norm(pred_fn(s) - s["flow"], axis=-1)[m].mean())
-        z.append(np.linalg.norm(s["flow"], axis=-1)[m].mean())
-    return float(np.mean(e) / np.mean(z))
+        if task == "flow":
+            acc.add(M.flow_sums(pred_fn(s), s["flow"], s[mask_key or "valid_flow"]))
+        else:
+            acc.add(M.disparity_sums(pred_fn(s), s["disp_t"], s[mask_key or "valid_disp_t"]))
+    return acc.per_image_mean()["epe_all"]
+
+
+def zero_map(s) -> np.ndarray:
+    return np.zeros_like(s["flow"])
+
+
+def zero_disparity(s) -> np.ndarray:
+    return np.zeros_like(s["disp_t"])
+
+
+def flow_ratio(samples, pred_fn, mask_key="valid_flow") -> float:
+    """Per-image mean flow EPE of pred_fn / that of zero motion, on `mask_key` pixels."""
+    return mean_epe(samples, pred_fn, "flow", mask_key) / mean_epe(samples, zero_map, "flow", mask_key)
 
 
 def priors(args) -> None:
@@ -55,7 +71,7 @@ def priors(args) -> None:
     inside = np.zeros((H, W), bool)
     inside[bh:-bh, bw:-bw] = True  # the loss's border band (LossConfig.border_ratio = 0.1) excluded
     rows = {
-        "zero_epe_all_px": float(np.mean([np.linalg.norm(s["flow"], axis=-1)[s["valid_flow"]].mean() for s in val])),
+        "zero_epe_all_px": mean_epe(val, zero_map),
         "mean_field": flow_ratio(val, lambda s: mean_field),
         "median_field": flow_ratio(val, lambda s: median_field),
         "gt_on_noc_zero_elsewhere": flow_ratio(val, lambda s: np.where(s["noc_flow"][..., None], s["flow"], 0)),
@@ -117,11 +133,10 @@ def supervised(args) -> None:
         for s in samples:  # one forward per sample: (left_t, left_t1), (left_t, right_t), (left_t, left_t)
             f = s["cycle"].astype(np.float32) / 255.0
             flow[s["seed"]] = np.asarray(forward(p, np.stack([_pair(f[0], f[2]), _pair(f[0], f[1]), _pair(f[0], f[0])])))
-        mkey = f"{args.mask}_flow"
-        ratio = flow_ratio(samples, lambda s: flow[s["seed"]][0], mkey)
-        disp = [np.abs(-flow[s["seed"]][1][..., 0] - s["disp_t"])[s["valid_disp_t"]].mean() for s in samples]
-        disp_same = [np.abs(-flow[s["seed"]][2][..., 0] - s["disp_t"])[s["valid_disp_t"]].mean() for s in samples]
-        return ratio, float(np.mean(disp)), float(np.mean(disp_same))
+        ratio = flow_ratio(samples, lambda s: flow[s["seed"]][0], f"{args.mask}_flow")
+        disp = mean_epe(samples, lambda s: -flow[s["seed"]][1][..., 0], "disparity")
+        disp_same = mean_epe(samples, lambda s: -flow[s["seed"]][2][..., 0], "disparity")
+        return ratio, disp, disp_same
 
     rng = np.random.default_rng(0)
     t0 = time.time()
@@ -145,17 +160,14 @@ def matching(args) -> None:
     pred = load_predictor(args.workdir, height=H, width=W)
     val = render(VAL_SEED, args.val_samples)
     out = {}
-    for name, b_index in (("real", None), ("b_replaced_by_a", 0)):
-        disp, flow = {}, {}
-        for s in val:
-            f = s["cycle"]
-            right = f[1] if b_index is None else f[0]
-            later = f[2] if b_index is None else f[0]
-            disp[s["seed"]] = -pred.predict_pair(f[0], right, task="stereo")[..., 0]
-            flow[s["seed"]] = pred.predict_pair(f[0], later, task="flow")
-        out[f"disp_epe_{name}"] = float(np.mean([np.abs(disp[s["seed"]] - s["disp_t"])[s["valid_disp_t"]].mean() for s in val]))
-        out[f"flow_vs_zero_{name}"] = flow_ratio(val, lambda s: flow[s["seed"]])
-    out["zero_disp_epe"] = float(np.mean([s["disp_t"][s["valid_disp_t"]].mean() for s in val]))
+    for name, replaced in (("real", False), ("b_replaced_by_a", True)):
+        def image_b(s, k, replaced=replaced):  # frame k (1 = right_t, 2 = left_t1), or left_t again
+            return s["cycle"][0 if replaced else k]
+
+        out[f"disp_epe_{name}"] = mean_epe(
+            val, lambda s: -pred.predict_pair(s["cycle"][0], image_b(s, 1), task="stereo")[..., 0], "disparity")
+        out[f"flow_vs_zero_{name}"] = flow_ratio(val, lambda s: pred.predict_pair(s["cycle"][0], image_b(s, 2), task="flow"))
+    out["zero_disp_epe"] = mean_epe(val, zero_disparity, "disparity")
     print(json.dumps({"what": "matching", "workdir": args.workdir, "val_samples": len(val), **out}))
 
 
