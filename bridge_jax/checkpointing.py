@@ -1,6 +1,6 @@
 """Checkpoints on disk.
 
-Layouts (see the project contract):
+Layouts:
 - **params-only** (convert / export / evaluate input): `DIR/model.json` (the model config, with "name") +
   `DIR/params/` (an orbax PyTree checkpoint of the params dict).
 - **training workdir**: `WORKDIR/model.json`, `WORKDIR/config.json`, `WORKDIR/checkpoints/<step>/` written by an
@@ -10,20 +10,20 @@ Layouts (see the project contract):
 """
 from __future__ import annotations
 
-# ==========================================================================================================
-# Params-only checkpoints (model worker). Self-contained: helpers below are private to this section.
-# ==========================================================================================================
-
 import contextlib
 import json
 import logging
 import os
-import shutil
-import uuid
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
+from grain import checkpoint as grain_ckpt
+
+from bridge_jax import files, models
 
 MODEL_JSON = "model.json"
 CONFIG_JSON = "config.json"  # a training workdir's config (beside its model.json)
@@ -32,9 +32,11 @@ CHECKPOINTS_DIR = "checkpoints"
 STATE_ITEM = "state"
 
 
-def _to_numpy_tree(tree: Any) -> Any:
-    import jax
+# ==========================================================================================================
+# Params-only checkpoints
+# ==========================================================================================================
 
+def _to_numpy_tree(tree: Any) -> Any:
     return jax.tree.map(lambda x: np.asarray(x), tree)
 
 
@@ -51,30 +53,15 @@ def save_params(directory: str | os.PathLike, params: dict, model_cfg: dict, *, 
     Raises:
       FileExistsError: `directory` exists and `overwrite` is False.
     """
-    import orbax.checkpoint as ocp
-
     out = Path(directory).absolute()
     if "name" not in model_cfg:
         raise ValueError("model_cfg must contain 'name'")
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists (pass overwrite=True / --overwrite to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        tmp.mkdir()
-        (tmp / MODEL_JSON).write_text(json.dumps(dict(model_cfg), indent=2, sort_keys=True) + "\n")
+    with files.staged_dir(out, overwrite=True) as tmp:
+        files.write_json(Path(tmp) / MODEL_JSON, dict(model_cfg))
         with ocp.PyTreeCheckpointer() as ckptr:
-            ckptr.save(tmp / PARAMS_DIR, _to_numpy_tree(params))
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+            ckptr.save(Path(tmp) / PARAMS_DIR, _to_numpy_tree(params))
     return out
 
 
@@ -109,8 +96,6 @@ def _quiet_item_dir_metadata():
 
 def _restore_tree(path: Path, subtree: str | None = None) -> Any:
     """Restore an orbax PyTree checkpoint at `path` as numpy arrays (optionally only the top-level `subtree`)."""
-    import orbax.checkpoint as ocp
-
     with _quiet_item_dir_metadata(), ocp.PyTreeCheckpointer() as ckptr:
         meta = ckptr.metadata(path)
         tree = meta.item_metadata.tree if hasattr(meta, "item_metadata") else meta.tree
@@ -127,8 +112,6 @@ def _restore_tree(path: Path, subtree: str | None = None) -> Any:
 
 def jax_tree_map_meta(fn, tree):
     """tree.map over orbax metadata trees (their leaves are metadata objects, not arrays)."""
-    import jax
-
     return jax.tree.map(fn, tree, is_leaf=lambda x: not isinstance(x, (dict, list, tuple)))
 
 
@@ -164,16 +147,11 @@ def load_params(path: str | os.PathLike) -> tuple[dict, dict]:
     Raises:
       ValueError naming the path when it is missing, of an unknown layout, or garbled.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from bridge_jax import models
-
     model_json, tree_path, subtree = resolve_checkpoint(path)
     if not model_json.is_file():
         raise ValueError(f"{path}: missing {model_json}")
     cfg = _read_model_json(model_json)
-    separate = bool(cfg.pop("separate_networks", False))  # train worker's no-sharing variant: 2 networks
+    separate = bool(cfg.pop("separate_networks", False))  # the no-sharing variant: 2 networks
     try:
         cfg = models.model_config(cfg)
     except ValueError as e:
@@ -201,13 +179,8 @@ def load_params(path: str | os.PathLike) -> tuple[dict, dict]:
 
 
 # ==========================================================================================================
-# (end of params-only section)
-# ==========================================================================================================
-
-
-# ==========================================================================================================
-# Training checkpoints (owner: train worker; used by bridge_jax/train.py). WORKDIR/checkpoints/<step>/ with
-# items `state` (train state pytree) and `data` (grain iterator state, one JSON file per process).
+# Training checkpoints: WORKDIR/checkpoints/<step>/ with items `state` (train state pytree) and `data` (grain
+# iterator state, one JSON file per process).
 # ==========================================================================================================
 
 DATA_ITEM = "data"
@@ -246,9 +219,6 @@ class TrainCheckpointer:
 
     def __init__(self, workdir: str | os.PathLike, *, save_every: int = 1000, keep: int | None = 3,
                  async_save: bool = True):
-        import orbax.checkpoint as ocp
-        from grain import checkpoint as grain_ckpt
-
         self.directory = str(Path(workdir).absolute() / CHECKPOINTS_DIR)
         self.save_every = int(save_every)
         options = ocp.CheckpointManagerOptions(
@@ -266,9 +236,6 @@ class TrainCheckpointer:
 
     def save(self, step: int, state: Any, data_state: dict | None = None, *, force: bool = False) -> bool:
         """Starts saving step `step` if due (`step % save_every == 0`) or forced; False if not saved."""
-        import orbax.checkpoint as ocp
-        from grain import checkpoint as grain_ckpt
-
         step = int(step)
         due = force or (self.save_every > 0 and step % self.save_every == 0)
         if not due or step in self.manager.all_steps():
@@ -280,9 +247,6 @@ class TrainCheckpointer:
 
     def restore(self, step: int, abstract_state: Any) -> tuple[Any, dict]:
         """Restores step `step` into the structure/shardings of `abstract_state` -> (state, data_state dict)."""
-        import orbax.checkpoint as ocp
-        from grain import checkpoint as grain_ckpt
-
         holder = _IteratorSnapshot()
         out = self.manager.restore(int(step), args=ocp.args.Composite(
             **{STATE_ITEM: ocp.args.StandardRestore(abstract_state), DATA_ITEM: grain_ckpt.CheckpointRestore(holder)}))

@@ -28,7 +28,11 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
+import jax
+import ml_dtypes
 import numpy as np
+
+from bridge_jax import checkpointing, models
 
 # --------------------------------------------------------------------------------------------------------
 # Reading .pth files without torch (restricted unpickler)
@@ -74,8 +78,6 @@ class _Opaque:
 class _StorageType:
     def __init__(self, name: str):
         if name == "BFloat16Storage":
-            import ml_dtypes  # ships with jax
-
             self.dtype = np.dtype(ml_dtypes.bfloat16)
         else:
             self.dtype = np.dtype(_STORAGE_DTYPES[name])
@@ -316,7 +318,6 @@ def detect_model(state_dict: dict) -> str:
 
 def infer_model_config(state_dict: dict, name: str | None = None) -> dict:
     """The bridge_jax model config whose shapes an upstream state dict has (resnet_md widths/depths read off)."""
-    from bridge_jax import models
 
     name = name or detect_model(state_dict)
     if name not in ("resnet_md", "resnet_md_tiny"):
@@ -355,9 +356,6 @@ def _torch_key(path: tuple[str, ...]) -> str:
 
 def expected_keys(model_cfg: dict) -> dict[str, tuple[tuple[str, ...], tuple[int, ...], str]]:
     """`{torch key: (params path, torch shape, kind)}` for a model config; kind in {"conv", "deconv", "bias"}."""
-    import jax
-
-    from bridge_jax import models
 
     _, abstract = models.abstract_init(model_cfg)
     out = {}
@@ -415,7 +413,6 @@ def convert_state_dict(state_dict: dict[str, np.ndarray], model_cfg: dict | None
 
 def convert(src: str | Path, out: str | Path, *, model: str | None = None, overwrite: bool = False) -> dict:
     """Read `src` (.pth), convert, and write a params checkpoint to `out`. Returns a summary dict."""
-    from bridge_jax import checkpointing, models
 
     sd = load_state_dict(src)
     cfg = infer_model_config(sd, model)

@@ -5,8 +5,8 @@ A cycle is the four frames of a rectified stereo video at two consecutive times,
     FRAMES = (left_t, right_t, left_t1, right_t1)     # float32 (4, H, W, 3) in [0, 1]
 
 (the order of upstream's cycle list files). The paper's network P(I_a, I_b) is applied to four
-*ordered pairs* (former -> latter), each in both directions. The pair order is upstream's row order
-(REFERENCE.md §1b), so per-pair tensors line up with the upstream parity fixture:
+*ordered pairs* (former -> latter), each in both directions (paper eqs. 1-3). The pair order is the row order
+of upstream's training batch, so per-pair tensors line up with the upstream parity fixture:
 
     pair 0  stereo_t1   left_t1 -> right_t1     stereo matching at t+1
     pair 1  flow_left   left_t  -> left_t1      optical flow, left camera
@@ -46,10 +46,6 @@ PAIRS = (
     Pair("stereo_t", LEFT_T, RIGHT_T, True),
 )
 STEREO_T1, FLOW_LEFT, FLOW_RIGHT, STEREO_T = range(4)
-PAIR_NAMES = tuple(p.name for p in PAIRS)
-IS_STEREO = tuple(p.is_stereo for p in PAIRS)
-FORMER = tuple(p.former for p in PAIRS)
-LATTER = tuple(p.latter for p in PAIRS)
 
 TASKS = ("flow_stereo", "stereo_only", "flow_only")
 _TASK_PAIRS = {
@@ -69,6 +65,16 @@ def pairs_for_tasks(tasks: str) -> tuple[int, ...]:
 def rows_per_cycle(pairs: Sequence[int] = tuple(range(4))) -> int:
     """Number of network inputs per cycle: each pair in both directions."""
     return 2 * len(pairs)
+
+
+def row_is_stereo(pairs: Sequence[int], num_rows: int, offset: int = 0) -> tuple[bool, ...]:
+    """Which of `num_rows` consecutive pair-input rows, starting at row `offset` of the batch, are stereo pairs.
+
+    Rows follow `batch_pair_inputs`: per cycle 2P rows, the P forward rows of `pairs`, then the P backward rows.
+    The answer is static (it decides which network a row goes through when stereo and flow do not share one).
+    """
+    p = len(pairs)
+    return tuple(PAIRS[pairs[(offset + i) % (2 * p) % p]].is_stereo for i in range(num_rows))
 
 
 def _check_cycle(cycle, name: str, batched: bool):
@@ -122,16 +128,6 @@ def split_directions(x, num_pairs: int):
 def unbatch_maps(maps, num_cycles: int):
     """Reshape network maps of (B * 2P, h, w, 2) per scale into (B, 2P, h, w, 2) for vmapping over cycles."""
     return {k: tuple(m.reshape((num_cycles, -1) + m.shape[1:]) for m in v) for k, v in maps.items()}
-
-
-def task_maps(maps, pairs: Sequence[int] = tuple(range(4)), scale: int = 0):
-    """Name the forward maps of one cycle by task (pixel maps at `scale`).
-
-    Returns a dict pair-name -> (h, w, 2) forward map, e.g. "stereo_t" is D(left_t -> right_t), whose
-    channel 0 is minus the disparity, and "flow_left" is the optical flow left_t -> left_t1.
-    """
-    px = maps["px"][scale]
-    return {PAIRS[k].name: px[i] for i, k in enumerate(pairs)}
 
 
 def disparity_from_stereo_map(d_px):

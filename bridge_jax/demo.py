@@ -20,55 +20,46 @@ import os
 import sys
 import time
 
-DEMO_CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "configs", "demo.py")
-
-
-def _load_config(arg: str | None):
-    from bridge_jax.configs import demo
-    return demo.get_config(arg)
+from bridge_jax import cli, evaluate, inference, setup, train
+from bridge_jax.configs import demo as demo_config
+from bridge_jax.data import synthetic
 
 
 def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None = None,
         enable_cache: bool = False) -> dict:
     """Train + validation set + evaluation; returns a summary dict (paths and headline numbers).
 
-    `enable_cache`: turn on the persistent compilation cache in `<workdir>/xla_cache` (what the command line
-    does; JAX keeps the first cache folder of a process, so library callers leave it off)."""
-    from bridge_jax import evaluate, train
-    from bridge_jax.data import synthetic
-
+    `overrides`: {"dotted.key": value} applied to the demo config. `enable_cache`: turn on the persistent
+    compilation cache in `<workdir>/xla_cache` (what the command line does; JAX keeps the first cache folder of a
+    process, so library callers leave it off)."""
     workdir = os.path.abspath(workdir)
-    config = _load_config(config_arg)
-    for k, v in (overrides or {}).items():
-        node = config
-        *path, last = k.split(".")
-        for p in path:
-            node = node[p]
-        node[last] = v
+    config = demo_config.get_config(config_arg)
+    config.update_from_flattened_dict(dict(overrides or {}))
+    demo_run = setup.parse(config)
     train_dir = os.path.join(workdir, "train")
     if enable_cache:
-        train.enable_compilation_cache(config, workdir)
+        train.enable_compilation_cache(demo_run.compilation_cache_dir, workdir)
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
 
     t0 = time.time()
-    print(f"[1/3] Training the demo model ({config.num_train_steps} steps, {config.height}x{config.width}, "
-          f"{config.model.name}) in {train_dir}", flush=True)
-    result = train.train_and_evaluate(config, train_dir)
+    print(f"[1/3] Training the demo model ({demo_run.num_train_steps} steps, {demo_run.height}x{demo_run.width}, "
+          f"{demo_run.model.config['name']}) in {train_dir}", flush=True)
+    result = train.train_and_evaluate(demo_run, train_dir)
     train_s = time.time() - t0
     if result["interrupted"]:
         print(f"Training interrupted at step {result['step']}; run the same command again to resume.")
         return {"interrupted": True, "train_dir": train_dir}
 
-    print(f"[2/3] Writing {config.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
+    print(f"[2/3] Writing {demo_run.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
     if not os.path.isdir(val_dir):
-        synthetic.write_kitti_layout(val_dir, int(config.eval.num_samples), seed=int(config.eval.seed),
-                                     height=int(config.height), width=int(config.width))
+        synthetic.write_kitti_layout(val_dir, demo_run.eval.num_samples, seed=demo_run.eval.seed, height=demo_run.height,
+                                     width=demo_run.width)
 
     print(f"[3/3] Evaluating the trained model and the baselines on it into {eval_dir}", flush=True)
-    predictor = evaluate.load_predictor(train_dir, (int(config.height), int(config.width)))
+    predictor = inference.load_predictor(train_dir, height=demo_run.height, width=demo_run.width)
     results = evaluate.evaluate(predictor, "synthetic", val_dir, out_dir=eval_dir, overwrite=True,
-                                batch=int(config.eval.batch), progress=False)
+                                batch=demo_run.eval.batch, progress=False)
     val = result.get("validation", {})
     summary = {
         "interrupted": False, "train_dir": train_dir, "eval_dir": eval_dir, "val_data": val_dir,
@@ -102,15 +93,12 @@ def main(argv=None) -> int:
     parser.add_argument("--workdir", default="work/demo", help="output folder (resumed if it exists)")
     parser.add_argument("--short", action="store_true", help="a 1-minute smoke run (demo.py:short)")
     args = parser.parse_args(argv)
-    from bridge_jax import evaluate, train
     try:
         run(args.workdir, config_arg="short" if args.short else None, enable_cache=True)
-    except (train.ConfigError, evaluate.EvaluationError, FileExistsError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as e:  # ConfigError, EvaluationError, a taken output folder...: one line
+        return cli.report_error(e)
     except train.TrainingDiverged as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        return cli.report_error(e, code=1)
     return 0
 
 

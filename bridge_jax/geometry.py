@@ -1,11 +1,12 @@
 """Geometry of correspondence maps: warping, unit conversion, image pyramids, occlusion masks.
 
-Conventions (REFERENCE.md §1a/§1b):
+Conventions (the same as the upstream code's, so that its numbers can be reproduced):
   * Layout NHWC, float32.
   * A correspondence map D (..., H, W, 2) says where pixel (x, y) of the first image is found in the
     second: at (x + D_x, y + D_y). Channel 0 is horizontal, channel 1 vertical.
-  * *Pixel* maps are in pixels of the map's own scale; *fraction* maps are ch0 / W_s and ch1 / H_s.
-  * warp(second, D) reconstructs the first image.
+  * *Pixel* maps are in pixels of the map's own scale; *fraction* maps are ch0 / W_s and ch1 / H_s. The
+    network outputs both; warps use pixel maps, the left-right term uses fractions.
+  * warp(second, D) reconstructs the first image (paper eqs. 4-5).
 
 All functions are pure, jit/vmap/grad-safe, and contain no Python loops over pixels.
 """
@@ -82,19 +83,7 @@ def px_to_frac(px):
     return px / map_scale(px.shape).astype(px.dtype)
 
 
-def rescale_px(px, out_hw):
-    """Convert pixel offsets of a map of size (H, W) to pixel units of size out_hw (values only, no resize)."""
-    h, w = px.shape[-3:-1]
-    oh, ow = out_hw
-    return px * jnp.array([ow / w, oh / h], px.dtype)
-
-
 # ----------------------------------------------------------------------------------------- resizing
-def upsample_nearest_2x(x):
-    """Nearest-neighbour x2 upsampling of (..., H, W, C) -> (..., 2H, 2W, C) (PyTorch 'nearest')."""
-    return jnp.repeat(jnp.repeat(x, 2, axis=-3), 2, axis=-2)
-
-
 def resize_bilinear(x, out_hw, *, antialias: bool = True):
     """Bilinear resize of (..., H, W, C) to out_hw = (H', W').
 
@@ -165,17 +154,20 @@ def _length_sq(x):
     return jnp.sum(jnp.square(x), axis=-1, keepdims=True)
 
 
-def forward_backward_occlusion(d_fw, d_bw, *, alpha1: float = 0.01, alpha2: float = 0.5, warped_bw_norm: bool = True):
-    """Forward-backward consistency check (paper Sec. 3.2, after Meister et al.).
+def forward_backward_occlusion(d_fw, d_bw, d_bw_warped=None, d_fw_warped=None, *, alpha1: float = 0.01,
+                               alpha2: float = 0.5, warped_bw_norm: bool = True):
+    """Forward-backward consistency check (paper eq. 6, after Meister et al.): which pixels are occluded.
 
     A pixel of the first image is occluded if
         |D + W(D', D)|^2  >  alpha1 * (|D|^2 + |W(D', D)|^2) + alpha2        (warped_bw_norm=True, paper)
-        |D + W(D', D)|^2  >  alpha1 * (|D|^2 + |D'|^2) + alpha2              (warped_bw_norm=False, upstream)
+        |D + W(D', D)|^2  >  alpha1 * (|D|^2 + |D'|^2) + alpha2              (warped_bw_norm=False, upstream code)
     and symmetrically for D'. Thresholds are in px^2 of the maps' scale.
 
     Args:
       d_fw: (..., H, W, 2) forward pixel map D (first -> second).
       d_bw: (..., H, W, 2) backward pixel map D' (second -> first).
+      d_bw_warped, d_fw_warped: W(D', D) and W(D, D') when the caller has them already (the cycle loss warps
+        them in the same gather as the images); computed here when None.
     Returns:
       (occ_fw, occ_bw): float {0, 1} (..., H, W, 1), 1 = occluded; occ_fw lives in the first image's
       frame, occ_bw in the second's. No gradient flows through them.
@@ -184,47 +176,35 @@ def forward_backward_occlusion(d_fw, d_bw, *, alpha1: float = 0.01, alpha2: floa
     _check_map("d_bw", d_bw, d_fw.shape[-3:-1])
     d_fw = jax.lax.stop_gradient(d_fw)
     d_bw = jax.lax.stop_gradient(d_bw)
-    return occlusion_from_warped(d_fw, d_bw, warp(d_bw, d_fw), warp(d_fw, d_bw), alpha1=alpha1, alpha2=alpha2,
-                                 warped_bw_norm=warped_bw_norm)
-
-
-def occlusion_from_warped(d_fw, d_bw, bw_warped, fw_warped, *, alpha1: float = 0.01, alpha2: float = 0.5,
-                          warped_bw_norm: bool = True):
-    """forward_backward_occlusion given the already warped maps W(D', D) and W(D, D').
-
-    The cycle loss warps several tensors by the same map in one call (fewer gathers to compile), so it
-    computes the warped maps itself. All inputs (..., H, W, 2) in pixels; gradients are stopped.
-    """
-    d_fw, d_bw, bw_warped, fw_warped = (jax.lax.stop_gradient(x) for x in (d_fw, d_bw, bw_warped, fw_warped))
-    diff_fw = _length_sq(d_fw + bw_warped)
-    diff_bw = _length_sq(d_bw + fw_warped)
+    d_bw_warped = warp(d_bw, d_fw) if d_bw_warped is None else jax.lax.stop_gradient(d_bw_warped)
+    d_fw_warped = warp(d_fw, d_bw) if d_fw_warped is None else jax.lax.stop_gradient(d_fw_warped)
+    diff_fw = _length_sq(d_fw + d_bw_warped)
+    diff_bw = _length_sq(d_bw + d_fw_warped)
     if warped_bw_norm:
-        thr_fw = alpha1 * (_length_sq(d_fw) + _length_sq(bw_warped)) + alpha2
-        thr_bw = alpha1 * (_length_sq(d_bw) + _length_sq(fw_warped)) + alpha2
+        thr_fw = alpha1 * (_length_sq(d_fw) + _length_sq(d_bw_warped)) + alpha2
+        thr_bw = alpha1 * (_length_sq(d_bw) + _length_sq(d_fw_warped)) + alpha2
     else:
         thr_fw = thr_bw = alpha1 * (_length_sq(d_fw) + _length_sq(d_bw)) + alpha2
     return (diff_fw > thr_fw).astype(d_fw.dtype), (diff_bw > thr_bw).astype(d_fw.dtype)
 
 
-def masks_from_occlusion(occ_fw, occ_bw, *, border_ratio: float = 0.1, floor: float = 1e-3):
-    """border * (1 - occluded) + floor for both directions (upstream's loss masks). (..., H, W, 1)."""
-    h, w = occ_fw.shape[-3:-1]
-    border = border_mask(h, w, border_ratio, occ_fw.dtype)
-    return border * (1 - occ_fw) + floor, border * (1 - occ_bw) + floor
+def occlusion_mask(d_fw, d_bw, d_bw_warped=None, d_fw_warped=None, *, alpha1: float = 0.01, alpha2: float = 0.5,
+                   warped_bw_norm: bool = True, border_ratio: float = 0.1, floor: float = 1e-3):
+    """The occlusion maps O of a pair (1 = use the pixel) as the reconstruction loss weighs them (eq. 7).
 
-
-def occlusion_mask(d_fw, d_bw, *, alpha1: float = 0.01, alpha2: float = 0.5, warped_bw_norm: bool = True,
-                   border_ratio: float = 0.1, floor: float = 1e-3):
-    """Loss masks of a flow pair (1 = use the pixel), as upstream builds them.
-
-    mask = border * (1 - occluded) + floor, for both directions, gradients stopped. The border band of
-    ceil(border_ratio * H_s) px and the +1e-3 floor are upstream's (not in the paper). Stereo pairs are
-    not masked (their mask is 1): that choice is made by the caller (losses.cycle_loss).
+    mask = border * (1 - occluded) + floor, for both directions, gradients stopped; `occluded` is
+    `forward_backward_occlusion` (eq. 6). The band of ceil(border_ratio * H_s) px on all four sides (where
+    warps read clamped border pixels) and the +1e-3 floor are the upstream code's, not in the paper. Stereo
+    pairs are not masked (their mask is 1): that choice is made by the caller (`losses.cycle_loss`).
 
     Args:
-      d_fw, d_bw: (..., H, W, 2) forward / backward pixel maps.
+      d_fw, d_bw: (..., H, W, 2) forward / backward pixel maps; d_bw_warped, d_fw_warped: optional
+        W(D', D), W(D, D') (see `forward_backward_occlusion`).
     Returns:
       (mask_fw (..., H, W, 1) in the first frame, mask_bw (..., H, W, 1) in the second frame).
     """
-    occ_fw, occ_bw = forward_backward_occlusion(d_fw, d_bw, alpha1=alpha1, alpha2=alpha2, warped_bw_norm=warped_bw_norm)
-    return masks_from_occlusion(occ_fw, occ_bw, border_ratio=border_ratio, floor=floor)
+    occ_fw, occ_bw = forward_backward_occlusion(d_fw, d_bw, d_bw_warped, d_fw_warped, alpha1=alpha1, alpha2=alpha2,
+                                                warped_bw_norm=warped_bw_norm)
+    h, w = occ_fw.shape[-3:-1]
+    border = border_mask(h, w, border_ratio, occ_fw.dtype)
+    return border * (1 - occ_fw) + floor, border * (1 - occ_bw) + floor

@@ -1,47 +1,46 @@
-"""Run a trained network on your own images.
+"""Run a trained network on your own images: the one predictor of bridge_jax.
 
     from bridge_jax.inference import load_predictor
-    pred = load_predictor("checkpoints/ver_a")                      # params-only dir, workdir or step dir
+    pred = load_predictor("work/demo/train")                        # params-only dir, workdir or step dir
     flow = pred.predict_pair(frame_t, frame_t1)                     # (h, w, 2) pixels, uint8 or float images
     out = pred.predict_cycle(left_t, right_t, left_t1, right_t1)   # disp_t, disp_t1 (h, w), flow (h, w, 2)
 
-As in the paper's evaluation (REFERENCE.md §1d): images of any size are resized to the working size
-(default H=256, W=512; antialiased bilinear, like PIL), the network runs once on the pair, and its
-full-resolution pixel map is resized back to the input size with bilinear interpolation, align_corners=True,
-then u is scaled by w / W and v by h / H, giving pixels of the *input* image. The map for (a, b) says where
-pixel (x, y) of `a` is found in `b`: at (x + u, y + v); so for a left->right stereo pair disparity = -u.
+Training's validation, `evaluate`, `predict`, `export` and the library all go through `Predictor`, so they
+resize, batch and rescale the same way, which is the paper's evaluation protocol:
 
-The network is jit-compiled once per (working size, batch size); resizing runs in numpy, so new input
-sizes never recompile it. Parameters stay float32; `dtype="bfloat16"` only changes the compute dtype.
+* images of any size are resized to the working size (default H=256, W=512; antialiased bilinear, like PIL),
+  and the network runs once per pair (`run_network`, compiled once per working size and batch size; resizing
+  runs in numpy, so new input sizes never recompile it);
+* flow: the full-resolution pixel map is resized back to the input size with bilinear interpolation,
+  align_corners=True, then u is scaled by w / W and v by h / H, giving pixels of the *input* image
+  (`flow_to_input_resolution`);
+* disparity = -u of a left -> right map; it is brought to the input size as a fraction of the width (u / W),
+  resized with OpenCV's INTER_LINEAR and multiplied by the input width w (`disparity_to_input_resolution`).
+
+The map for (a, b) says where pixel (x, y) of `a` is found in `b`: at (x + u, y + v). Parameters stay
+float32; `dtype="bfloat16"` only changes the compute dtype.
 """
 from __future__ import annotations
 
+import copy
+import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Optional
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import models
+from bridge_jax import checkpointing, models
+from bridge_jax.network import Network, check_separate_params, compute_dtype
 
 DEFAULT_HEIGHT = 256
 DEFAULT_WIDTH = 512
-_DTYPES = {None: None, "float32": None, "fp32": None, "bfloat16": jnp.bfloat16, "bf16": jnp.bfloat16}
-
-
-def _parse_dtype(dtype: Any):
-    if dtype is None or isinstance(dtype, str):
-        if dtype not in _DTYPES:
-            raise ValueError(f"dtype must be one of {sorted(k for k in _DTYPES if k)}, got {dtype!r}")
-        return _DTYPES[dtype]
-    d = jnp.dtype(dtype)
-    if d == jnp.float32:
-        return None
-    if d == jnp.bfloat16:
-        return jnp.bfloat16
-    raise ValueError(f"dtype must be float32 or bfloat16, got {dtype!r}")
+TASKS = ("flow", "stereo")
+"""What a pair is: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -127,16 +126,45 @@ def resize_images(images: np.ndarray, height: int, width: int) -> np.ndarray:
     return _resize(images, resize_weights_antialias(h, height), resize_weights_antialias(w, width))
 
 
-def maps_to_input_resolution(px: np.ndarray, height: int, width: int) -> np.ndarray:
+def flow_to_input_resolution(px: np.ndarray, height: int, width: int) -> np.ndarray:
     """Working-resolution pixel maps `(..., H, W, 2)` -> `(..., height, width, 2)` in pixels of the input size.
 
-    Bilinear with align_corners=True, then u *= width / W and v *= height / H (REFERENCE.md §1d).
+    Bilinear with align_corners=True, then u *= width / W and v *= height / H (how the paper's flow evaluation
+    brings its predictions to the KITTI resolution).
     """
     H, W = px.shape[-3:-1]
     if (H, W) == (height, width):
         return np.asarray(px, np.float32)
     out = _resize(px, resize_weights_align_corners(H, height), resize_weights_align_corners(W, width))
     return out * np.array([width / W, height / H], np.float32)
+
+
+def disparity_to_input_resolution(disp_px: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Disparity `(H, W)` in working pixels -> `(height, width)` float32 in pixels of the input size.
+
+    The fraction disp / W is resized with OpenCV INTER_LINEAR and multiplied by `width` (how the paper's stereo
+    evaluation brings its predictions to the KITTI resolution); unchanged when the sizes agree.
+    """
+    h, w = disp_px.shape
+    if (h, w) == (height, width):
+        return np.asarray(disp_px, np.float32)
+    frac = np.asarray(disp_px, np.float32) / np.float32(w)
+    return cv2.resize(frac, (width, height), interpolation=cv2.INTER_LINEAR) * np.float32(width)
+
+
+def map_to_input_resolution(task: str, working_map: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A working-size map `(H, W, 2)` of a pair -> its prediction at the input size: flow `(height, width, 2)`
+    for a "flow" pair, disparity `(height, width)` (= -u) for a "stereo" pair."""
+    if task == "flow":
+        return flow_to_input_resolution(working_map, height, width)
+    return disparity_to_input_resolution(-working_map[..., 0], height, width)
+
+
+def _check_task(task: str) -> bool:
+    """True for a stereo pair; ValueError for an unknown task."""
+    if task not in TASKS:
+        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+    return task == "stereo"
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -149,46 +177,70 @@ class Predictor:
     Args:
       graphdef, params: from `bridge_jax.models.init` or a checkpoint. With `separate=True`, params is
         `{"stereo": ..., "flow": ...}` (two networks; stereo pairs use the first, flow pairs the second).
-      height, width: working size; multiples of 64. Default 256 x 512 (the paper's).
+      height, width: working size; multiples of the model's input multiple (64). Default 256 x 512 (the paper's).
       dtype: compute dtype, None/"float32" or "bfloat16" (params stay float32).
       model_cfg: the model config (for the input-size multiple and for export metadata).
+      mesh: optional 1-D device mesh; pairs are then sharded over it (padded to a multiple of its size) and the
+        maps come back replicated (training's validation runs on the training mesh). Default: one device.
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
     """
 
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
-                 dtype: Any = None, model_cfg: dict | None = None, separate: bool = False):
-        name = (model_cfg or {}).get("name", "resnet_md")
-        multiple = models.INPUT_MULTIPLE.get(name, 64)
-        if (not isinstance(height, (int, np.integer)) or not isinstance(width, (int, np.integer)) or height <= 0
-                or width <= 0 or height % multiple or width % multiple):
-            raise ValueError(f"working size must be positive multiples of {multiple}, got height={height}, "
-                             f"width={width}")
-        self.graphdef = graphdef
-        self.height, self.width = int(height), int(width)
-        self.dtype = _parse_dtype(dtype)
+                 dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None):
         self.model_cfg = dict(model_cfg) if model_cfg else None
-        self.separate = separate
-        if separate and not (isinstance(params, dict) and set(params) == {"stereo", "flow"}):
-            raise ValueError("separate=True needs params {'stereo': ..., 'flow': ...}")
-        self.params = jax.device_put(params)
+        models.check_working_size((model_cfg or {}).get("name", "resnet_md"), height, width)
+        check_separate_params(params, separate)
+        self.net = Network(graphdef, separate=separate, dtype=compute_dtype(dtype))
+        self.graphdef, self.separate, self.dtype = graphdef, separate, self.net.dtype
+        self.height, self.width = int(height), int(width)
+        self.mesh = mesh
         self.trace_count = 0
-        self._net = jax.jit(self._forward)
+        if mesh is None:
+            self.params = jax.device_put(params)
+            self._net = jax.jit(self._forward, static_argnums=(2,))
+        else:
+            self._pairs_sharding = NamedSharding(mesh, P(mesh.axis_names[0]))
+            self.params = params
+            self._net = jax.jit(self._forward, static_argnums=(2,), out_shardings=NamedSharding(mesh, P()))
 
-    def _forward(self, params, pairs):
+    def _forward(self, params, pairs, rows):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return models.apply(self.graphdef, params, pairs, dtype=self.dtype)["px"][0]
+        return self.net(params, pairs, rows)["px"][0]
 
-    def _params(self, task: str):
-        if not self.separate:
-            return self.params
-        if task not in ("stereo", "flow"):
-            raise ValueError(f"task must be 'stereo' or 'flow' for a separate-networks model, got {task!r}")
-        return self.params[task]
+    def with_params(self, params) -> "Predictor":
+        """The same predictor (and compiled function) with other params, e.g. a training state's."""
+        other = copy.copy(self)
+        other.params = params
+        return other
 
-    def run_network(self, pairs: np.ndarray, task: str = "flow") -> np.ndarray:
-        """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixels at the working size."""
-        return np.asarray(self._net(self._params(task), jnp.asarray(pairs, jnp.float32)))
+    def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
+        """The compiled network on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps
+        (N a multiple of the mesh size); `is_stereo` one bool per row."""
+        return self._net(self.params, pairs, self.net.static_rows(is_stereo))
+
+    def lower(self, batch: int, is_stereo: bool = False):
+        """`jax.stages.Lowered` of the network for `batch` pairs (compile time, cost and memory analysis)."""
+        spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
+        return self._net.lower(self.params, spec, self.net.static_rows((is_stereo,) * batch))
+
+    def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
+        """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.
+
+        `is_stereo`: one bool for all rows or one per row (only separate networks look at it).
+        """
+        pairs = np.asarray(pairs, np.float32)
+        n = pairs.shape[0]
+        rows = (bool(is_stereo),) * n if isinstance(is_stereo, (bool, np.bool_)) else tuple(map(bool, is_stereo))
+        if self.mesh is None:
+            x = jnp.asarray(pairs)
+        else:
+            pad = (-n) % self.mesh.size
+            if pad:
+                pairs = np.concatenate([pairs, np.repeat(pairs[-1:], pad, 0)])
+                rows = rows + (rows[-1],) * pad
+            x = jax.make_array_from_callback(pairs.shape, self._pairs_sharding, lambda idx: pairs[idx])
+        return np.asarray(self.forward(x, rows))[:n]
 
     def prepare(self, images_a: Sequence, images_b: Sequence) -> tuple[np.ndarray, tuple[int, int]]:
         """Validate, convert and resize N pairs -> (`(N, H, W, 6)` float32, (h, w) of the inputs)."""
@@ -206,10 +258,41 @@ class Predictor:
         pairs = np.concatenate([np.stack(a), np.stack(b)], axis=-1)
         return resize_images(pairs, self.height, self.width), size
 
+    def working_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
+        """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b.
+
+        The network is called on exactly `batch` pairs at a time (default: all jobs at once; the last call
+        padded by repetition), so one compiled function serves a whole run; each pair is resized on its own,
+        so images of different sizes can share a call. Separate networks get one call per task.
+        """
+        out: list[Optional[np.ndarray]] = [None] * len(jobs)
+        stereo = [_check_task(task) for task, _, _ in jobs]
+        if not self.separate:
+            stereo = [False] * len(jobs)  # one shared network: no need to split (and pad) by task
+        for kind in dict.fromkeys(stereo):
+            idx = [i for i, s in enumerate(stereo) if s == kind]
+            size = batch or len(idx)
+            for start in range(0, len(idx), size):
+                chunk = idx[start:start + size]
+                pairs = np.concatenate([self.prepare([jobs[i][1]], [jobs[i][2]])[0] for i in chunk])
+                if len(chunk) < size:
+                    pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
+                for i, m in zip(chunk, self.run_network(pairs, kind)):
+                    out[i] = m
+        return out  # type: ignore[return-value]
+
+    def predict(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
+        """Predictions of `jobs` = [(task, image a, image b), ...] at each pair's input size: flow `(h, w, 2)`
+        for "flow" jobs, disparity `(h, w)` for "stereo" jobs (see the module docstring); `batch` as in
+        `working_maps`."""
+        maps = self.working_maps(jobs, batch)
+        return [map_to_input_resolution(task, m, *np.shape(a)[:2]) for (task, a, _), m in zip(jobs, maps)]
+
     def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow") -> np.ndarray:
-        """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> `(N, h, w, 2)` float32 pixels."""
+        """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> `(N, h, w, 2)` float32 pixel maps
+        at the input resolution (the flow rule, for either task)."""
         pairs, (h, w) = self.prepare(images_a, images_b)
-        return maps_to_input_resolution(self.run_network(pairs, task), h, w)
+        return flow_to_input_resolution(self.run_network(pairs, _check_task(task)), h, w)
 
     def predict_pair(self, image_a: Any, image_b: Any, task: str = "flow") -> np.ndarray:
         """Correspondence from `image_a` to `image_b`: `(h, w, 2)` float32, pixels of the input resolution."""
@@ -219,25 +302,18 @@ class Predictor:
         """Disparity at t and t+1 and left-camera optical flow t -> t+1 for two stereo frames.
 
         Returns:
-          {"disp_t": (h, w), "disp_t1": (h, w)} = -u of left->right (pixels, >= 0 for a sensible model),
-          {"flow": (h, w, 2)} = map of (left_t, left_t1) in pixels.
+          {"disp_t": (h, w), "disp_t1": (h, w)} = disparity of left_t / left_t1 (pixels, >= 0 for a sensible
+          model), {"flow": (h, w, 2)} = flow left_t -> left_t1 in pixels; as `evaluate` and `predict` compute
+          them.
         """
-        if self.separate:
-            disp = self.predict_pairs([left_t, left_t1], [right_t, right_t1], task="stereo")
-            flow = self.predict_pairs([left_t], [left_t1], task="flow")[0]
-        else:
-            out = self.predict_pairs([left_t, left_t1, left_t], [right_t, right_t1, left_t1])
-            disp, flow = out[:2], out[2]
-        return {"disp_t": -disp[0, ..., 0], "disp_t1": -disp[1, ..., 0], "flow": flow}
+        disp_t, disp_t1, flow = self.predict([("stereo", left_t, right_t), ("stereo", left_t1, right_t1),
+                                              ("flow", left_t, left_t1)])
+        return {"disp_t": disp_t, "disp_t1": disp_t1, "flow": flow}
 
 
 def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
     """(height, width) a training workdir (or one of its step dirs) was trained at, from its config.json;
     None for params-only checkpoints or when unknown."""
-    import json
-
-    from bridge_jax import checkpointing
-
     try:
         model_json, _, _ = checkpointing.resolve_checkpoint(path)
         with open(model_json.parent / checkpointing.CONFIG_JSON) as f:
@@ -254,9 +330,8 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     Working size: `height`/`width` if given, else the size a training workdir was trained at (its
     config.json; a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
+    Raises ValueError naming the checkpoint (missing, unreadable) or the working size.
     """
-    from bridge_jax import checkpointing
-
     if height is None or width is None:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
         height = trained[0] if height is None else height
@@ -269,4 +344,5 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate)
 
 
-__all__ = ["Predictor", "load_predictor", "trained_working_size", "to_rgb_float", "resize_images", "maps_to_input_resolution"]
+__all__ = ["Predictor", "load_predictor", "trained_working_size", "to_rgb_float", "resize_images",
+           "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "TASKS"]

@@ -1,24 +1,38 @@
-"""The paper's unsupervised loss terms and the cycle loss that combines them (pure JAX).
+"""The paper's unsupervised loss: one pure function per equation, and the cycle loss that trains with them.
 
-Terms (paper Sec. 3.3; exact upstream numerics in REFERENCE.md §1b):
-  * reconstruction (photometric) loss  L_rec  = alpha * (1 - SSIM)/2 + (1 - alpha) * L1, under a mask
-  * edge-aware 2nd-order smoothness     L_sm   (on the pixel map / 20, image weights exp(-beta |dI|))
-  * left-right consistency              L_lr   (stereo pairs, fraction units)
-  * 2-warp consistency                  L_2warp (full-1 / full-2 / full-3)
+Equations of the paper (Sec. 3), each the function that the train step runs:
 
-Units: images in [0, 1]; pixel maps in pixels of their scale; fraction maps in fractions of W_s / H_s.
-All four scales are summed with equal weights, both directions of every pair are used.
+  eq. 6   occlusion (forward-backward check)    `geometry.occlusion_mask`
+  eq. 7   reconstruction loss  L_rec            `photometric_loss`: alpha (1 - SSIM)/2 + (1 - alpha) L1, masked
+  eq. 8   edge-aware smoothness  L_sm           `smoothness_loss` (2nd-order on the map, 1st-order on the image)
+  eq. 9   left-right consistency  L_lr          `lr_consistency_loss` (stereo pairs, fraction units)
+  eqs. 10-12  2-warp consistency  L_2warp      `two_warp_chains` (which images, maps and masks) + `two_warp_loss`
+  eq. 13  total loss                            `cycle_loss`: the weighted sum over scales, pairs and directions
 
-Normalisation. Upstream divides masked means by the mean mask over the whole batch of cycles. Here
-every masked term is computed per cycle as a (numerator mean, mask mean) pair; `reduction="cycle"`
-(default) averages the per-cycle ratios over cycles, `reduction="batch"` divides the batch means (upstream
-exactly). The two agree whenever the cycles of a batch are identical, and for a single cycle.
+`cycle_loss` does the warps itself (for each scale one batched gather of everything that is warped by the same
+maps: both reconstructions, the other direction's pixel map for eq. 6, its fraction map for eq. 9), so that the
+equation functions take pre-warped inputs; that is both what the paper writes (each term compares a map or an
+image with a warped one) and what compiles fast.
+
+Units: images in [0, 1]; pixel maps in pixels of their scale; fraction maps in fractions of W_s / H_s. All four
+scales are summed with equal weights, and both directions of every pair are used.
+
+Where the upstream code differs from the paper, `LossConfig` has a switch (paper default; `LossConfig.upstream()`
+for the code's behaviour): the 2-warp comparison target, the 2-warp weighting, the occlusion threshold's norm and
+the normalisation over a batch. Fixed upstream details that are not in the paper: SSIM is computed on the masked
+images with 3x3 mean windows (VALID); the smoothness term sees the pixel map divided by 20; masks have a border
+band and a 1e-3 floor (see `geometry.occlusion_mask`).
+
+Normalisation. A masked term sum(x * O) / sum(O) is kept per cycle as `Masked(mean(x * O), mean(O))`;
+`reduction="cycle"` (default) averages the per-cycle ratios over the cycles of a batch, `reduction="batch"`
+divides the batch means (upstream, which normalises over its whole 2-cycle batch). The two agree whenever the
+cycles of a batch are identical, and for a single cycle.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -33,17 +47,17 @@ TWO_WARP_TYPES = ("none", "full1", "full2", "full3")
 class LossConfig:
     """Hyper-parameters and paper/upstream switches of the cycle loss.
 
-    Defaults follow the paper; `LossConfig.upstream()` reproduces upstream's code.
+    Defaults follow the paper; `LossConfig.upstream()` reproduces the upstream code.
     """
 
     tasks: str = "flow_stereo"  # flow_stereo | stereo_only | flow_only
     two_warp: str = "none"  # none | full1 | full2 | full3
-    # The 2-warp estimate is compared with the 1-warp reconstruction of the same frame (paper eq. 7 and
-    # the author's stated intent) or with the real image (upstream code).
+    # The 2-warp estimate is compared with the 1-warp reconstruction of the same frame (paper eq. 12 and the
+    # author's stated intent) or with the real image (upstream code).
     two_warp_target: str = "reconstruction"  # reconstruction | image
     # paper: lambda_2warp = 0.2 times the sum of the variant's two terms; upstream: 0.1 per term.
     two_warp_weighting: str = "paper"  # paper | upstream
-    # Occlusion threshold uses |W(D', D)|^2 (paper eq. 3) or the unwarped |D'|^2 (upstream code).
+    # Occlusion threshold uses |W(D', D)|^2 (paper eq. 6) or the unwarped |D'|^2 (upstream code).
     occlusion_norm: str = "warped"  # warped | unwarped
     reduction: str = "cycle"  # cycle | batch (see module docstring)
     alpha: float = 0.85
@@ -71,7 +85,8 @@ class LossConfig:
             if getattr(self, field) not in allowed:
                 raise ValueError(f"loss.{field} must be one of {allowed}, got {getattr(self, field)!r}")
         if self.two_warp != "none" and self.tasks != "flow_stereo":
-            raise ValueError(f"loss.two_warp={self.two_warp!r} needs stereo and flow pairs (tasks='flow_stereo'), got tasks={self.tasks!r}")
+            raise ValueError(f"loss.two_warp={self.two_warp!r} needs stereo and flow pairs (tasks='flow_stereo'), "
+                             f"got tasks={self.tasks!r}")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None = None, **overrides) -> "LossConfig":
@@ -84,7 +99,7 @@ class LossConfig:
 
     @classmethod
     def upstream(cls, **overrides) -> "LossConfig":
-        """Upstream code's behaviour (REFERENCE.md §1b), e.g. for parity with the peer fixture."""
+        """The upstream code's behaviour, e.g. for parity with its numbers."""
         base = dict(two_warp_target="image", two_warp_weighting="upstream", occlusion_norm="unwarped", reduction="batch")
         base.update(overrides)
         return cls(**base)
@@ -94,15 +109,37 @@ class LossConfig:
         return cyc.pairs_for_tasks(self.tasks)
 
     def two_warp_term_weight(self) -> float:
-        """Multiplier of each 2-warp term (both variants have two terms)."""
+        """Multiplier of each 2-warp term (every variant has two terms)."""
         return self.lambda_2warp if self.two_warp_weighting == "paper" else 0.1
 
 
-# ------------------------------------------------------------------------------------- basic terms
+# --------------------------------------------------------------------------------------------- term records
+class Masked(NamedTuple):
+    """A masked mean sum(x * M) / sum(M), kept as its two means (mean(x * M), mean(M)) until the reduction over
+    cycles decides how to normalise (see the module docstring). A plain mean is Masked(mean, 1)."""
+
+    num: Any
+    den: Any
+
+
+class Photometric(NamedTuple):
+    """The two parts of the reconstruction loss (eq. 7): SSIM and L1 terms (`Masked` per cycle, scalars once
+    reduced). Upstream normalises them separately (the SSIM map is 2 px smaller on each axis), so they are only
+    mixed after the reduction, by `value`."""
+
+    ssim: Any
+    l1: Any
+
+    def value(self, alpha: float):
+        """alpha * SSIM term + (1 - alpha) * L1 term (of reduced terms)."""
+        return alpha * self.ssim + (1 - alpha) * self.l1
+
+
+# ----------------------------------------------------------------------------------- eq. 7: reconstruction
 def _avg_pool3(x):
     """3x3 mean pooling, stride 1, VALID: (..., H, W, C) -> (..., H-2, W-2, C)."""
-    # Written as shifted slices rather than lax.reduce_window: it fuses with the SSIM arithmetic and
-    # compiles several times faster on XLA:CPU.
+    # Shifted slices rather than lax.reduce_window: they fuse with the SSIM arithmetic and compile several
+    # times faster on XLA:CPU.
     rows = x[..., :-2, :, :] + x[..., 1:-1, :, :] + x[..., 2:, :, :]
     return (rows[..., :-2, :] + rows[..., 1:-1, :] + rows[..., 2:, :]) / 9.0
 
@@ -126,18 +163,21 @@ def ssim(x, y, *, c1: float = 0.01**2, c2: float = 0.03**2):
     return jnp.clip((1 - num / den) / 2, 0, 1)
 
 
-def photometric_parts(estimate, target, mask):
-    """The masked photometric terms as (numerator mean, mask mean) pairs (upstream's normalisation).
+def photometric_loss(estimate, target, mask) -> Photometric:
+    """Reconstruction loss (paper eq. 7) of a reconstruction `estimate` of the image `target` under mask O.
 
-    l1   = mean(|est - I| * M)       / mean(M)
-    ssim = mean(SSIM(est * M, I * M)) / mean(M)    (SSIM of the *masked images*, as upstream)
-    Means run over every axis given (rows, pixels, channels).
+        L_rec = alpha * SSIM term + (1 - alpha) * L1 term         (mixed by `Photometric.value(alpha)`)
+        L1 term   = mean(|estimate - target| * O) / mean(O)
+        SSIM term = mean(SSIM(estimate * O, target * O)) / mean(O)  (SSIM of the *masked images*, as upstream)
+
+    Means run over every axis given (pairs, pixels, channels). The 2-warp loss (eq. 12) is the same function
+    applied to a 2-warp estimate.
 
     Args:
-      estimate, target: (..., H, W, C) images in [0, 1].
+      estimate, target: (..., H, W, C) images in [0, 1] (estimate = W(second image, D), pre-warped).
       mask: (..., H, W, 1), 1 = use the pixel.
     Returns:
-      dict "l1" / "ssim" -> (numerator mean, mask mean).
+      Photometric(ssim=Masked, l1=Masked) of scalars; `Masked.num / Masked.den` is the term of one cycle.
     """
     if estimate.shape != target.shape:
         raise ValueError(f"estimate {tuple(estimate.shape)} and target {tuple(target.shape)} must have the same shape")
@@ -146,23 +186,20 @@ def photometric_parts(estimate, target, mask):
     m = jnp.mean(mask)
     l1 = jnp.mean(jnp.abs(estimate - target) * mask)
     s = jnp.mean(ssim(estimate * mask, target * mask))
-    return {"l1": (l1, m), "ssim": (s, m)}
+    return Photometric(ssim=Masked(s, m), l1=Masked(l1, m))
 
 
-def photometric_loss(estimate, target, mask, *, alpha: float = 0.85):
-    """alpha * SSIM term + (1 - alpha) * L1 term, each normalised by the mask mean (dimensionless)."""
-    p = photometric_parts(estimate, target, mask)
-    return alpha * p["ssim"][0] / p["ssim"][1] + (1 - alpha) * p["l1"][0] / p["l1"][1]
-
-
+# --------------------------------------------------------------------------------------- eq. 8: smoothness
 def smoothness_loss(disp_px, image, *, beta: float = 10.0, scale: float = 1.0 / 20.0):
-    """Edge-aware second-order smoothness of a correspondence map.
+    """Edge-aware second-order smoothness of a correspondence map (paper eq. 8).
 
-    (mean(w_x |d2x (D * scale)|) + mean(w_y |d2y (D * scale)|)) / 2,  w = exp(-beta * mean_c |dI|)
-    with the first image difference aligned to the second map difference as upstream ([1:] slice).
+        L_sm = (mean(w_x |d2x (D * scale)|) + mean(w_y |d2y (D * scale)|)) / 2,   w = exp(-beta * mean_c |dI|)
+
+    The first image difference is aligned with the second map difference as upstream does (the [1:] slice):
+    the second difference centred at x is weighted by the image step between x and x + 1.
 
     Args:
-      disp_px: (..., H, W, 2) pixel map (upstream smooths px / 20).
+      disp_px: (..., H, W, 2) pixel map (upstream smooths px / 20: `scale`).
       image: (..., H, W, C) the image the map lives in (the first image of the pair).
     Returns:
       scalar (pixels * scale, per pixel); 0 for any map linear in x and y.
@@ -178,94 +215,138 @@ def smoothness_loss(disp_px, image, *, beta: float = 10.0, scale: float = 1.0 / 
     return (jnp.mean(wx * jnp.abs(d2x)) + jnp.mean(wy * jnp.abs(d2y))) / 2
 
 
-def lr_consistency_loss(frac_fw, frac_bw, px_fw):
-    """Left-right correspondence consistency, in **fraction** units (upstream).
+# --------------------------------------------------------------------------------- eq. 9: left-right
+def lr_consistency_loss(frac, frac_other_warped):
+    """Left-right correspondence consistency (paper eq. 9), in **fraction** units as upstream.
 
-    mean | -W(frac', D) - frac |  over both channels: the backward fraction map brought into the first
-    frame must be the negative of the forward one. Pass (bw, fw, px_bw) for the mirrored term.
+        L_lr = mean | D + W(D', D) |  over both channels
+
+    The backward map brought into the first frame must be the negative of the forward map. For the mirrored
+    term pass (D', W(D, D')).
 
     Args:
-      frac_fw: (..., H, W, 2) forward fraction map; frac_bw: backward fraction map; px_fw: forward pixel map.
+      frac: (..., H, W, 2) fraction map D of the stereo pairs.
+      frac_other_warped: (..., H, W, 2) W(D', D), the other direction's fraction map warped by D's pixel map.
     """
-    return lr_consistency_from_warped(frac_fw, geometry.warp(frac_bw, px_fw))
+    return jnp.mean(jnp.abs(-frac_other_warped - frac))
 
 
-def lr_consistency_from_warped(frac_fw, frac_bw_warped):
-    """mean | -W(frac', D) - frac | given the already warped backward fraction map W(frac', D)."""
-    return jnp.mean(jnp.abs(-frac_bw_warped - frac_fw))
+# ----------------------------------------------------------------------------------- eqs. 10-12: 2-warp
+class PairMaps(NamedTuple):
+    """Everything of one cycle at one scale that the 2-warp chains pick from, per pair (4, h, w, C) in
+    `cycle.PAIRS` order: images, pixel maps D (forward) and D' (backward), the 1-warp reconstructions
+    W(latter, D) ~ former and W(former, D') ~ latter, and the loss masks (1 on stereo pairs)."""
+
+    former: Any
+    latter: Any
+    px_fwd: Any
+    px_bwd: Any
+    est_fwd: Any
+    est_bwd: Any
+    mask_fwd: Any
+    mask_bwd: Any
 
 
-# ---------------------------------------------------------------------------------------- 2-warp
-# Each chain: (name, source reconstruction, second map, target frame, mask, reconstruction-target).
-# Notation per cycle: D_k / D'_k = forward / backward pixel map of pair k (cycle.PAIRS), est_fwd_k =
-# W(latter_k, D_k) ~ former_k, est_bwd_k = W(former_k, D'_k) ~ latter_k; O_fw_k / O_bw_k = masks.
-# The 1-warp reconstruction used as target (paper) is the one along the edge of the stereo-video
-# square parallel to the chain's first warp (paper Fig. 4a: I^{r,t} from I^{r,t+1} for the chain
-# L_t1 -> L_t -> R_t).
-def two_warp_chains(variant: str):
-    """Names of the 2-warp chains of a variant (documentation and tests)."""
-    return {
-        "none": (),
-        # full-1: stereo then flow. (a) R_t1 -> L_t1 -> L_t, (b) R_t -> L_t -> L_t1.
-        "full1": ("R_t1->L_t1->L_t", "R_t->L_t->L_t1"),
-        # full-2: flow then stereo. (a) L_t1 -> L_t -> R_t, (b) R_t1 -> R_t -> L_t.
-        "full2": ("L_t1->L_t->R_t", "R_t1->R_t->L_t"),
-        # full-3: full-2 (a) plus L_t1 -> R_t1 -> R_t.
-        "full3": ("L_t1->L_t->R_t", "L_t1->R_t1->R_t"),
-    }[variant]
+class TwoWarpChain(NamedTuple):
+    """One 2-warp term: eq. 11 warps `image` (a 1-warp reconstruction) by `flow`; eq. 12 compares the result
+    with `target` under `mask`, which eq. 10 first warps by `mask_flow` (None: the mask is used as it is)."""
+
+    name: str
+    image: Any
+    flow: Any
+    target: Any
+    mask: Any
+    mask_flow: Optional[Any]
 
 
-def _two_warp_chains(variant, px_f, px_b, est_f, est_b, m_f, m_b, former, latter, target_mode):
-    """Per chain: (name, image to warp, its 2nd map, target, mask, mask_is_warped) for one cycle at one scale.
+TWO_WARP_CHAINS = {
+    "none": (),
+    # full-1: stereo then flow. (a) R_t1 -> L_t1 -> L_t, (b) R_t -> L_t -> L_t1.
+    "full1": ("R_t1->L_t1->L_t", "R_t->L_t->L_t1"),
+    # full-2: flow then stereo. (a) L_t1 -> L_t -> R_t (the paper's worked example, eqs. 10-12),
+    # (b) R_t1 -> R_t -> L_t.
+    "full2": ("L_t1->L_t->R_t", "R_t1->R_t->L_t"),
+    # full-3: full-2 (a) plus L_t1 -> R_t1 -> R_t.
+    "full3": ("L_t1->L_t->R_t", "L_t1->R_t1->R_t"),
+}
+"""The chains of each 2-warp variant, "source -> via -> target frame"."""
 
-    Arguments are per-pair stacks (P=4, h, w, C) in cycle.PAIRS order. When mask_is_warped the mask is
-    warped by the same map as the image (its gradient reaches that map, as upstream).
+
+def two_warp_chains(variant: str, p: PairMaps, target: str = "reconstruction") -> tuple[TwoWarpChain, ...]:
+    """The 2-warp chains of a variant (paper Fig. 4, eqs. 10-11) for one cycle at one scale.
+
+    Each chain starts from a 1-warp reconstruction (warped once along one edge of the stereo-video square) and
+    warps it along the adjacent edge; the result is compared (eq. 12) with the 1-warp reconstruction of the same
+    frame along the parallel edge (`target="reconstruction"`, the paper) or with the real frame (`"image"`,
+    upstream code). Flow chains are masked by the flow pair's occlusion map; chains whose second warp is a
+    stereo warp carry that mask across with the stereo map of the other time (eq. 10), and the mask's gradient
+    then reaches that map, as upstream.
     """
+    if variant not in TWO_WARP_CHAINS:
+        raise ValueError(f"two_warp must be one of {TWO_WARP_TYPES}, got {variant!r}")
     S1, FL, FR, S0 = cyc.STEREO_T1, cyc.FLOW_LEFT, cyc.FLOW_RIGHT, cyc.STEREO_T
-    recon = target_mode == "reconstruction"
+    recon = target == "reconstruction"
     chains = {
-        # R_t1 -> L_t1 -> L_t: est(L_t1 from R_t1) warped by F(L_t -> L_t1); vs L_t (or est(L_t from R_t));
-        # mask O(L_t -> L_t1).
-        "R_t1->L_t1->L_t": (est_f[S1], px_f[FL], est_f[S0] if recon else former[FL], m_f[FL], False),
-        # R_t -> L_t -> L_t1: est(L_t from R_t) warped by F(L_t1 -> L_t); vs L_t1 (or est(L_t1 from R_t1));
-        # mask O(L_t1 -> L_t).
-        "R_t->L_t->L_t1": (est_f[S0], px_b[FL], est_f[S1] if recon else latter[FL], m_b[FL], False),
-        # L_t1 -> L_t -> R_t: est(L_t from L_t1) warped by D(R_t -> L_t); vs R_t (or est(R_t from R_t1));
-        # mask O(L_t -> L_t1) warped by D(R_t1 -> L_t1): literally the paper's eq. 6.
-        "L_t1->L_t->R_t": (est_f[FL], px_b[S0], est_f[FR] if recon else latter[S0], (m_f[FL], px_b[S1]), True),
-        # R_t1 -> R_t -> L_t: est(R_t from R_t1) warped by D(L_t -> R_t); vs L_t (or est(L_t from L_t1));
-        # mask O(R_t -> R_t1) warped by D(L_t1 -> R_t1).
-        "R_t1->R_t->L_t": (est_f[FR], px_f[S0], est_f[FL] if recon else former[S0], (m_f[FR], px_f[S1]), True),
-        # L_t1 -> R_t1 -> R_t: est(R_t1 from L_t1) warped by F(R_t -> R_t1); vs R_t (or est(R_t from L_t));
-        # unwarped mask O(R_t -> R_t1).
-        "L_t1->R_t1->R_t": (est_b[S1], px_f[FR], est_b[S0] if recon else former[FR], m_f[FR], False),
+        # W(L_t1 <- R_t1) warped by F(L_t -> L_t1) ~ L_t, vs W(L_t <- R_t) (or L_t); mask O(L_t -> L_t1).
+        "R_t1->L_t1->L_t": TwoWarpChain("R_t1->L_t1->L_t", p.est_fwd[S1], p.px_fwd[FL],
+                                        p.est_fwd[S0] if recon else p.former[FL], p.mask_fwd[FL], None),
+        # W(L_t <- R_t) warped by F(L_t1 -> L_t) ~ L_t1, vs W(L_t1 <- R_t1) (or L_t1); mask O(L_t1 -> L_t).
+        "R_t->L_t->L_t1": TwoWarpChain("R_t->L_t->L_t1", p.est_fwd[S0], p.px_bwd[FL],
+                                       p.est_fwd[S1] if recon else p.latter[FL], p.mask_bwd[FL], None),
+        # W(L_t <- L_t1) warped by D(R_t -> L_t) ~ R_t, vs W(R_t <- R_t1) (or R_t); mask O(L_t -> L_t1) warped by
+        # D(R_t1 -> L_t1): literally the paper's eqs. 10-11.
+        "L_t1->L_t->R_t": TwoWarpChain("L_t1->L_t->R_t", p.est_fwd[FL], p.px_bwd[S0],
+                                       p.est_fwd[FR] if recon else p.latter[S0], p.mask_fwd[FL], p.px_bwd[S1]),
+        # W(R_t <- R_t1) warped by D(L_t -> R_t) ~ L_t, vs W(L_t <- L_t1) (or L_t); mask O(R_t -> R_t1) warped by
+        # D(L_t1 -> R_t1).
+        "R_t1->R_t->L_t": TwoWarpChain("R_t1->R_t->L_t", p.est_fwd[FR], p.px_fwd[S0],
+                                       p.est_fwd[FL] if recon else p.former[S0], p.mask_fwd[FR], p.px_fwd[S1]),
+        # W(R_t1 <- L_t1) warped by F(R_t -> R_t1) ~ R_t, vs W(R_t <- L_t) (or R_t); unwarped mask O(R_t -> R_t1).
+        "L_t1->R_t1->R_t": TwoWarpChain("L_t1->R_t1->R_t", p.est_bwd[S1], p.px_fwd[FR],
+                                        p.est_bwd[S0] if recon else p.former[FR], p.mask_fwd[FR], None),
     }
-    return [(name,) + chains[name] for name in two_warp_chains(variant)]
+    return tuple(chains[name] for name in TWO_WARP_CHAINS[variant])
 
 
-def _two_warp_terms(variant, px_f, px_b, est_f, est_b, m_f, m_b, former, latter, target_mode):
-    """[(name, 2-warp estimate, target, mask)] of a variant at one scale; all warps in one batched call."""
-    chains = _two_warp_chains(variant, px_f, px_b, est_f, est_b, m_f, m_b, former, latter, target_mode)
-    # One warp call for both chains: rows = (chain image + mask), then (chain masks warped by their own map).
-    srcs, disps = [], []
-    for _, image, disp, _, mask, warped in chains:
-        srcs.append(image)
-        disps.append(disp)
-    for _, _, _, _, mask, warped in chains:
-        if warped:
-            srcs.append(jnp.broadcast_to(mask[0], mask[0].shape[:-1] + (srcs[0].shape[-1],)))
-            disps.append(mask[1])
-    out = geometry.warp(jnp.stack(srcs), jnp.stack(disps))
-    terms, k = [], len(chains)
-    for i, (name, _, _, target, mask, warped) in enumerate(chains):
-        if warped:
+def two_warp_loss(chains: tuple[TwoWarpChain, ...]) -> tuple[Photometric, ...]:
+    """2-warp consistency loss (paper eqs. 10-12), one `Photometric` per chain.
+
+        O'     = W(O, mask_flow)                  (eq. 10; O itself when the chain has no mask_flow)
+        I_2warp = W(image, flow)                  (eq. 11; `image` is already a 1-warp reconstruction)
+        L_2warp = photometric_loss(I_2warp, target, O')   (eq. 12)
+
+    All warps of the chains (images, then the masks that are warped) go through one gather.
+    """
+    srcs = [c.image for c in chains]
+    flows = [c.flow for c in chains]
+    for c in chains:
+        if c.mask_flow is not None:
+            srcs.append(jnp.broadcast_to(c.mask, c.mask.shape[:-1] + (srcs[0].shape[-1],)))
+            flows.append(c.mask_flow)
+    out = geometry.warp(jnp.stack(srcs), jnp.stack(flows))
+    estimates, k = [], len(chains)
+    for i, c in enumerate(chains):
+        mask = c.mask
+        if c.mask_flow is not None:
             mask = out[k][..., :1]
             k += 1
-        terms.append((name, out[i], target, mask))
-    return terms
+        estimates.append((out[i], c.target, mask))
+    return tuple(photometric_loss(*e) for e in estimates)
 
 
-# ------------------------------------------------------------------------------------- cycle loss
+# ----------------------------------------------------------------------------------- eq. 13: cycle loss
+class ScaleTerms(NamedTuple):
+    """Every unweighted term of one cycle at one scale (`Masked` per cycle; scalars once reduced)."""
+
+    photo_fwd: Photometric  # eq. 7: former vs W(latter, D)
+    photo_bwd: Photometric  # eq. 7: latter vs W(former, D')
+    smooth_fwd: Masked  # eq. 8 of D (in the former frame), a plain mean
+    smooth_bwd: Masked  # eq. 8 of D' (in the latter frame)
+    lr_fwd: Optional[Masked]  # eq. 9 of the stereo pairs' D, a plain mean (None without stereo pairs)
+    lr_bwd: Optional[Masked]  # eq. 9 of the stereo pairs' D'
+    two_warp: tuple  # eq. 12, one Photometric per chain of the 2-warp variant
+
+
 def _check_maps(maps, rows: int, h: int, w: int, num_scales: int):
     if not isinstance(maps, Mapping) or "px" not in maps or "frac" not in maps:
         raise ValueError("maps must be a dict with 'px' and 'frac' tuples of per-scale (N, H_s, W_s, 2) arrays")
@@ -289,19 +370,66 @@ def _select_rows(maps, cfg: LossConfig):
     return maps
 
 
-def cycle_loss_parts(maps, cycle, cfg: LossConfig, pyramid=None):
-    """Every loss term of one cycle as (numerator mean, denominator mean) pairs.
+def scale_terms(px, frac, frames, cfg: LossConfig) -> ScaleTerms:
+    """Every term of one cycle at one scale.
 
     Args:
-      maps: network output for the cycle's 2P inputs (cycle.pair_inputs order): {"px": (s0..s3),
-        "frac": (s0..s3)}, each (2P, H_s, W_s, 2). With P = 4 (flow+stereo) rows 0..3 are the forward
-        maps of PAIRS 0..3 and rows 4..7 the backward maps.
+      px, frac: (2P, h, w, 2) pixel and fraction maps of the cycle's active pairs (forward rows, then backward).
+      frames: (4, h, w, 3) the cycle's frames at this scale.
+    """
+    pairs = cfg.pairs
+    p = len(pairs)
+    former, latter = cyc.pair_images(frames, pairs)  # static slices, no gather
+    px_f, px_b = cyc.split_directions(px, p)
+    fr_f, fr_b = cyc.split_directions(frac, p)
+
+    # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in ONE gather: the reconstructions (latter by
+    # D, former by D'), the other direction's pixel map (eq. 6) and its fraction map (eq. 9). Fewer, wider
+    # gathers compile much faster on XLA:CPU than many small ones.
+    src = jnp.concatenate([jnp.concatenate([latter, former]), jnp.concatenate([px_b, px_f]),
+                           jnp.concatenate([fr_b, fr_f])], axis=-1)
+    warped = geometry.warp(src, jnp.concatenate([px_f, px_b]))
+    est_f, est_b = warped[:p, ..., :3], warped[p:, ..., :3]  # W(latter, D) ~ former, W(former, D') ~ latter
+    px_b_w, px_f_w = warped[:p, ..., 3:5], warped[p:, ..., 3:5]  # W(D', D), W(D, D')
+    fr_b_w, fr_f_w = warped[:p, ..., 5:7], warped[p:, ..., 5:7]
+
+    # Occlusion masks (eq. 6) on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3). Detached.
+    m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
+                                       warped_bw_norm=cfg.occlusion_norm == "warped",
+                                       border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
+    stereo = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
+    m_f = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_f))
+    m_b = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_b))
+
+    photo_fwd = photometric_loss(est_f, former, m_f)
+    photo_bwd = photometric_loss(est_b, latter, m_b)
+    one = jnp.ones((), jnp.float32)  # plain means are Masked(x, 1): every term is reduced the same way
+    smooth_fwd = Masked(smoothness_loss(px_f, former, beta=cfg.beta, scale=cfg.smooth_scale), one)
+    smooth_bwd = Masked(smoothness_loss(px_b, latter, beta=cfg.beta, scale=cfg.smooth_scale), one)
+
+    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
+    lr_fwd = lr_bwd = None
+    if st:  # stereo pairs only
+        rows = lambda x: jnp.stack([x[i] for i in st])
+        lr_fwd = Masked(lr_consistency_loss(rows(fr_f), rows(fr_b_w)), one)
+        lr_bwd = Masked(lr_consistency_loss(rows(fr_b), rows(fr_f_w)), one)
+
+    two_warp = ()
+    if cfg.two_warp != "none":
+        chains = two_warp_chains(cfg.two_warp, PairMaps(former, latter, px_f, px_b, est_f, est_b, m_f, m_b),
+                                 cfg.two_warp_target)
+        two_warp = two_warp_loss(chains)
+    return ScaleTerms(photo_fwd, photo_bwd, smooth_fwd, smooth_bwd, lr_fwd, lr_bwd, two_warp)
+
+
+def cycle_terms(maps, cycle, cfg: LossConfig, pyramid=None) -> tuple[ScaleTerms, ...]:
+    """`scale_terms` of one cycle at every scale.
+
+    Args:
+      maps: network output for the cycle's 2P inputs (`cycle.pair_inputs` order): {"px": (s0..s3), "frac":
+        (s0..s3)}, each (2P, H_s, W_s, 2); all 8 rows are accepted too for a task subset.
       cycle: (4, H, W, 3) frames in [0, 1].
-      cfg: LossConfig.
-      pyramid: optional tuple of per-scale (4, H_s, W_s, 3) frames; computed with
-        geometry.image_pyramid when None.
-    Returns:
-      dict name -> (num, den); a term's value is num / den (den = 1 for plain means).
+      pyramid: optional tuple of per-scale (4, H_s, W_s, 3) frames; `geometry.image_pyramid` when None.
     """
     if cycle.ndim != 4 or cycle.shape[0] != 4 or cycle.shape[-1] != 3:
         raise ValueError(f"cycle must have shape (4, H, W, 3), got {tuple(cycle.shape)}")
@@ -309,120 +437,75 @@ def cycle_loss_parts(maps, cycle, cfg: LossConfig, pyramid=None):
     f = 2 ** (cfg.num_scales - 1)
     if h % f or w % f:
         raise ValueError(f"cycle H and W must be divisible by {f} for {cfg.num_scales} scales, got {h}x{w}")
-    pairs = cfg.pairs
-    p = len(pairs)
     maps = _select_rows(maps, cfg)
-    _check_maps(maps, 2 * p, h, w, cfg.num_scales)
+    _check_maps(maps, 2 * len(cfg.pairs), h, w, cfg.num_scales)
     if pyramid is None:
         pyramid = geometry.image_pyramid(cycle, cfg.num_scales)
-    stereo = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
-    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
-    one = jnp.ones((), jnp.float32)
-    parts = {}
-    for s in range(cfg.num_scales):
-        frames = pyramid[s]
-        former, latter = cyc.pair_images(frames, pairs)  # static slices, no gather
-        px_f, px_b = cyc.split_directions(maps["px"][s], p)
-        fr_f, fr_b = cyc.split_directions(maps["frac"][s], p)
-
-        # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in ONE gather: the reconstruction
-        # (latter by D, former by D'), the other direction's pixel map (occlusion check) and its fraction
-        # map (LR consistency). Fewer, wider gathers compile much faster on XLA:CPU than many small ones.
-        src = jnp.concatenate([jnp.concatenate([latter, former]), jnp.concatenate([px_b, px_f]),
-                               jnp.concatenate([fr_b, fr_f])], axis=-1)
-        warped = geometry.warp(src, jnp.concatenate([px_f, px_b]))
-        est_f, est_b = warped[:p, ..., :3], warped[p:, ..., :3]  # reconstructions of former / latter
-        px_b_w, px_f_w = warped[:p, ..., 3:5], warped[p:, ..., 3:5]  # W(D', D), W(D, D')
-        fr_b_w, fr_f_w = warped[:p, ..., 5:7], warped[p:, ..., 5:7]
-
-        # Occlusion masks on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3). Detached.
-        occ_f, occ_b = geometry.occlusion_from_warped(
-            px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
-            warped_bw_norm=cfg.occlusion_norm == "warped")
-        m_f, m_b = geometry.masks_from_occlusion(occ_f, occ_b, border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
-        m_f = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_f))
-        m_b = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_b))
-
-        for direction, est, img, m in (("fwd", est_f, former, m_f), ("bwd", est_b, latter, m_b)):
-            for name, part in photometric_parts(est, img, m).items():
-                parts[f"{name}_{direction}/{s}"] = part
-        parts[f"smooth_fwd/{s}"] = (smoothness_loss(px_f, former, beta=cfg.beta, scale=cfg.smooth_scale), one)
-        parts[f"smooth_bwd/{s}"] = (smoothness_loss(px_b, latter, beta=cfg.beta, scale=cfg.smooth_scale), one)
-
-        if st:  # left-right consistency, stereo pairs only, fraction units: mean |-W(frac', D) - frac|
-            rows = lambda x: jnp.stack([x[i] for i in st])
-            parts[f"lr_fwd/{s}"] = (lr_consistency_from_warped(rows(fr_f), rows(fr_b_w)), one)
-            parts[f"lr_bwd/{s}"] = (lr_consistency_from_warped(rows(fr_b), rows(fr_f_w)), one)
-
-        if cfg.two_warp != "none":
-            terms = _two_warp_terms(cfg.two_warp, px_f, px_b, est_f, est_b, m_f, m_b, former, latter, cfg.two_warp_target)
-            for tag, (name, est, target, mask) in zip("ab", terms):
-                for pname, part in photometric_parts(est, target, mask).items():
-                    parts[f"two_warp_{tag}_{pname}/{s}"] = part
-    return parts
+    return tuple(scale_terms(maps["px"][s], maps["frac"][s], pyramid[s], cfg) for s in range(cfg.num_scales))
 
 
-def reduce_parts(parts, cfg: LossConfig):
-    """Combine per-cycle parts (leading axis = cycles, or scalars for one cycle) into term values."""
-    out = {}
-    for k, (num, den) in parts.items():
-        if cfg.reduction == "batch":
-            out[k] = jnp.mean(num) / jnp.mean(den)
-        else:
-            out[k] = jnp.mean(num / den)
-    return out
+def reduce_over_cycles(terms, reduction: str):
+    """Per-cycle `Masked` terms (leading axis = cycles) -> scalars, normalised per cycle (reduction="cycle": the
+    mean of the ratios) or over the batch ("batch", upstream: the ratio of the means)."""
+    def reduce(x: Masked):
+        return jnp.mean(x.num) / jnp.mean(x.den) if reduction == "batch" else jnp.mean(x.num / x.den)
+
+    return jax.tree.map(reduce, terms, is_leaf=lambda x: isinstance(x, Masked))
 
 
-def combine_terms(values, cfg: LossConfig):
-    """Weighted total and the summary terms from per-scale values (see module docstring)."""
+def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
+    """The total loss (paper eq. 13) from reduced per-scale terms, and every term by name (for logging).
+
+        total = sum_s [photo_fwd + photo_bwd] + lambda_sm * sum_s [smooth_fwd + smooth_bwd]
+                + lambda_lr * sum_s [lr_fwd + lr_bwd] + w_2warp * sum_s [two_warp_a + two_warp_b]
+
+    w_2warp = lambda_2warp (paper) or 0.1 (upstream), see `LossConfig.two_warp_term_weight`.
+    Term names: "<term>_<fwd|bwd>/<scale>" per scale ("l1_", "ssim_", "photo_", "smooth_", "lr_"),
+    "two_warp_<a|b>/<scale>", and the sums over scales "photo_fwd", "photo_bwd", "smooth_fwd", "smooth_bwd",
+    "lr", "two_warp_a", "two_warp_b", "two_warp", "total".
+    """
     a = cfg.alpha
     terms = {}
-    scales = range(cfg.num_scales)
+    for s, t in enumerate(scales):
+        for d, photo in (("fwd", t.photo_fwd), ("bwd", t.photo_bwd)):
+            terms[f"l1_{d}/{s}"], terms[f"ssim_{d}/{s}"] = photo.l1, photo.ssim
+            terms[f"photo_{d}/{s}"] = photo.value(a)
+        terms[f"smooth_fwd/{s}"], terms[f"smooth_bwd/{s}"] = t.smooth_fwd, t.smooth_bwd
+        if t.lr_fwd is not None:
+            terms[f"lr_fwd/{s}"], terms[f"lr_bwd/{s}"] = t.lr_fwd, t.lr_bwd
+        for tag, photo in zip("ab", t.two_warp):
+            terms[f"two_warp_{tag}/{s}"] = photo.value(a)
+    n = range(len(scales))
     for d in ("fwd", "bwd"):
-        for s in scales:
-            terms[f"photo_{d}/{s}"] = a * values[f"ssim_{d}/{s}"] + (1 - a) * values[f"l1_{d}/{s}"]
-        terms[f"photo_{d}"] = sum(terms[f"photo_{d}/{s}"] for s in scales)
-        terms[f"smooth_{d}"] = sum(values[f"smooth_{d}/{s}"] for s in scales)
-    has_lr = "lr_fwd/0" in values
-    terms["lr"] = sum(values[f"lr_fwd/{s}"] + values[f"lr_bwd/{s}"] for s in scales) if has_lr else jnp.zeros(())
+        terms[f"photo_{d}"] = sum(terms[f"photo_{d}/{s}"] for s in n)
+        terms[f"smooth_{d}"] = sum(terms[f"smooth_{d}/{s}"] for s in n)
+    terms["lr"] = sum(terms[f"lr_fwd/{s}"] + terms[f"lr_bwd/{s}"] for s in n) if "lr_fwd/0" in terms else jnp.zeros(())
     two_warp = jnp.zeros(())
-    if cfg.two_warp != "none":
-        for tag in "ab":
-            for s in scales:
-                terms[f"two_warp_{tag}/{s}"] = a * values[f"two_warp_{tag}_ssim/{s}"] + (1 - a) * values[f"two_warp_{tag}_l1/{s}"]
-            terms[f"two_warp_{tag}"] = sum(terms[f"two_warp_{tag}/{s}"] for s in scales)
-            two_warp = two_warp + terms[f"two_warp_{tag}"]
+    for tag in "ab"[:len(scales[0].two_warp)]:
+        terms[f"two_warp_{tag}"] = sum(terms[f"two_warp_{tag}/{s}"] for s in n)
+        two_warp = two_warp + terms[f"two_warp_{tag}"]
     terms["two_warp"] = two_warp
     total = (terms["photo_fwd"] + terms["photo_bwd"] + cfg.lambda_sm * (terms["smooth_fwd"] + terms["smooth_bwd"])
              + cfg.lambda_lr * terms["lr"] + cfg.two_warp_term_weight() * two_warp)
-    terms.update({k: v for k, v in values.items() if k.startswith(("l1_", "ssim_", "smooth_", "lr_"))})
     terms["total"] = total
     return total, terms
 
 
-def cycle_loss(maps, cycle, cfg: LossConfig, pyramid=None):
-    """Total loss of one cycle and a dict of every term (unweighted; 'total' is the weighted sum).
-
-    total = sum_s [photo_fwd + photo_bwd] + lambda_sm * sum_s [smooth_fwd + smooth_bwd]
-            + lambda_lr * sum_s [lr_fwd + lr_bwd] + w_2warp * sum_s [two_warp_a + two_warp_b]
-
-    Args: see cycle_loss_parts. Returns (total scalar, terms dict of scalars).
-    """
-    parts = cycle_loss_parts(maps, cycle, cfg, pyramid)
-    return combine_terms(reduce_parts(parts, cfg), cfg)
-
-
-def batch_cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
-    """Cycle loss of a batch, vmapped over cycles (any number of cycles).
+def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
+    """The training loss of a batch of cycles (paper eq. 13): `cycle_terms` vmapped over the cycles, reduced
+    over them (`cfg.reduction`), weighted by `total_loss`.
 
     Args:
-      maps: network output for cycle.batch_pair_inputs(cycles): per scale (B * 2P, H_s, W_s, 2).
-      cycles: (B, 4, H, W, 3).
-      pyramids: optional per-scale (B, 4, H_s, W_s, 3).
+      maps: network output for `cycle.batch_pair_inputs(cycles, cfg.pairs)`: {"px", "frac"} tuples of
+        per-scale (B * 2P, H_s, W_s, 2) maps (cycle-major).
+      cycles: (B, 4, H, W, 3) frames in [0, 1]; a single cycle (4, H, W, 3) is a batch of one.
+      pyramids: optional per-scale (B, 4, H_s, W_s, 3) frames (computed when None).
     Returns:
-      (total, terms): per-cycle ratios averaged over cycles (reduction="cycle") or batch-normalised
-      (reduction="batch", upstream).
+      (total scalar, dict of every term by name; see `total_loss`).
     """
+    if cycles.ndim == 4:
+        cycles = cycles[None]
+        pyramids = None if pyramids is None else tuple(p[None] for p in pyramids)
     if cycles.ndim != 5:
         raise ValueError(f"cycles must have shape (B, 4, H, W, 3), got {tuple(cycles.shape)}")
     b = cycles.shape[0]
@@ -430,28 +513,5 @@ def batch_cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
     if n % b:
         raise ValueError(f"maps have {n} rows, not a multiple of the {b} cycles")
     per_cycle = cyc.unbatch_maps(maps, b)
-    fn = lambda m, c, p: cycle_loss_parts(m, c, cfg, p)
-    parts = jax.vmap(fn)(per_cycle, cycles, pyramids)
-    return combine_terms(reduce_parts(parts, cfg), cfg)
-
-
-def two_warp_loss(px_fwd, px_bwd, former, latter, mask_fwd, mask_bwd, cfg: LossConfig):
-    """2-warp consistency loss of one cycle at one scale (paper eq. 7), weighted as cfg says.
-
-    Args:
-      px_fwd, px_bwd: (4, H, W, 2) forward / backward pixel maps of the 4 PAIRS of a cycle.
-      former, latter: (4, H, W, 3) the pairs' images at this scale.
-      mask_fwd, mask_bwd: (4, H, W, 1) loss masks (1 for stereo pairs), in the former / latter frame.
-      cfg: LossConfig with two_warp in {full1, full2, full3}.
-    Returns:
-      (weighted loss, dict chain-name -> unweighted photometric term).
-    """
-    if cfg.two_warp == "none":
-        raise ValueError("two_warp_loss needs cfg.two_warp in ('full1', 'full2', 'full3')")
-    est_f = geometry.warp(jnp.concatenate([latter, former]), jnp.concatenate([px_fwd, px_bwd]))
-    est_f, est_b = est_f[:4], est_f[4:]
-    terms = {}
-    for name, est, target, mask in _two_warp_terms(cfg.two_warp, px_fwd, px_bwd, est_f, est_b, mask_fwd, mask_bwd,
-                                                   former, latter, cfg.two_warp_target):
-        terms[name] = photometric_loss(est, target, mask, alpha=cfg.alpha)
-    return cfg.two_warp_term_weight() * sum(terms.values()), terms
+    terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p))(per_cycle, cycles, pyramids)
+    return total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)

@@ -15,7 +15,7 @@ Outputs (``NNNNNN`` = frame index): ``flow/NNNNNN.png`` (Middlebury colour wheel
 ``disparity/NNNNNN.png`` and ``depth/NNNNNN.png`` (colormaps, colour bars in ``legend_*.png``), raw values as
 KITTI 16-bit PNGs (``*_kitti/``) and/or ``.npy`` (``*_npy/``, float32 pixels / metres), ``video.mp4`` for video
 input and ``predict.json`` describing the run. Maps are at the input resolution, rescaled exactly as in
-evaluation (:mod:`bridge_jax.evaluate`). Colour scales are fixed for a whole run (from the first frame unless
+evaluation (`bridge_jax.inference`). Colour scales are fixed for a whole run (from the first frame unless
 ``--max-flow`` / ``--max-disp`` are given) so that frames are comparable.
 
 KITTI submission layout: 2015 → ``disp_0/``, ``disp_1/`` (the t+1 disparity brought into frame t along the
@@ -33,15 +33,18 @@ import argparse
 import dataclasses
 import json
 import os
-import shutil
 import sys
 from collections.abc import Iterator, Sequence
 from typing import Optional
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
-from bridge_jax import evaluate, visualize
+from bridge_jax import cli, files, inference, metrics, visualize
+from bridge_jax.data import kitti
+from bridge_jax.eval.datasets import Frame, kitti_specs
+from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", ".wmv")
@@ -71,7 +74,7 @@ class Source:
 def read_image(path: str) -> np.ndarray:
     """uint8 RGB ``(H, W, 3)``; grayscale is replicated. Raises PredictError naming the path."""
     try:
-        return _kitti().read_image(path)
+        return kitti.read_image(path)
     except ValueError as e:  # missing, truncated or undecodable
         raise PredictError(str(e)) from None
 
@@ -225,9 +228,8 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "
 
 
 class Runner:
-    """Batches (task, index, image a, image b) jobs into fixed-size predictor calls and rescales each map to the
-    input resolution like evaluation: flow → :func:`evaluate.flow_to_gt_resolution`, disparity (−channel 0)
-    → :func:`evaluate.disparity_to_gt_resolution`."""
+    """Collects (task, index, image a, image b) jobs ("flow" or "disp") and runs them through the predictor in
+    fixed-size batches (`inference.Predictor.predict`): flow and disparity at each input's resolution."""
 
     def __init__(self, predictor, batch_pairs: int):
         self.predictor = predictor
@@ -242,25 +244,13 @@ class Runner:
         if not self.jobs:
             return []
         jobs, self.jobs = self.jobs, []
-        maps = evaluate._working_maps(self.predictor, [j[2] for j in jobs], [j[3] for j in jobs],
-                                      pad_to=self.batch_pairs, tasks=[evaluate._task_of(j[0]) for j in jobs])
-        out = []
-        for (task, index, a, _), m in zip(jobs, maps):
-            h, w = a.shape[:2]
-            if task == "flow":
-                out.append((task, index, evaluate.flow_to_gt_resolution(m, h, w)))
-            else:
-                out.append((task, index, evaluate.disparity_to_gt_resolution(-m[..., 0], h, w)))
-        return out
+        preds = self.predictor.predict([("flow" if t == "flow" else "stereo", a, b) for t, _, a, b in jobs],
+                                       self.batch_pairs)
+        return [(task, index, value) for (task, index, _, _), value in zip(jobs, preds)]
 
 
 # --------------------------------------------------------------------------------------------------------------
 # Writing
-
-
-def _kitti():
-    from bridge_jax.data import kitti
-    return kitti
 
 
 class Writer:
@@ -290,7 +280,7 @@ class Writer:
         color = visualize.flow_to_color(flow, max_flow=self.max_flow)
         visualize.write_image(self._path(sub, index, ".png"), color)
         if "png" in self.raw:
-            _kitti().write_flow_png(self._path(f"{sub}_kitti", index, ".png"), flow, np.ones(flow.shape[:2], bool))
+            kitti.write_flow_png(self._path(f"{sub}_kitti", index, ".png"), flow, np.ones(flow.shape[:2], bool))
         if "npy" in self.raw:
             np.save(self._path(f"{sub}_npy", index, ".npy"), flow.astype(np.float32))
         self.counts[sub] = self.counts.get(sub, 0) + 1
@@ -302,13 +292,12 @@ class Writer:
         color = visualize.disparity_to_color(disp, vmax=self.max_disp)
         visualize.write_image(self._path(sub, index, ".png"), color)
         if "png" in self.raw:
-            _kitti().write_disp_png(self._path(f"{sub}_kitti", index, ".png"), np.clip(disp, 1 / 256, 255.0),
+            kitti.write_disp_png(self._path(f"{sub}_kitti", index, ".png"), np.clip(disp, 1 / 256, 255.0),
                                     np.ones(disp.shape, bool))
         if "npy" in self.raw:
             np.save(self._path(f"{sub}_npy", index, ".npy"), disp.astype(np.float32))
         self.counts[sub] = self.counts.get(sub, 0) + 1
         if self.focal and self.baseline and sub == "disparity":
-            from bridge_jax import metrics
             depth = metrics.disparity_to_depth(disp, self.focal, self.baseline)
             visualize.write_image(self._path("depth", index, ".png"), visualize.depth_to_color(depth))
             if "npy" in self.raw:
@@ -345,10 +334,7 @@ class Writer:
 
 
 def _progress(total: Optional[int], enabled: bool, desc: str):
-    if not enabled:
-        return evaluate._NoBar()
-    from tqdm import tqdm
-    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr)
+    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=not enabled)
 
 
 def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool = False, batch: int = 4,
@@ -361,53 +347,50 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
     also the t+1 disparity brought into frame t (``disparity_t1_in_t/``). Returns the run description that is
     also written to ``predict.json``.
     """
-    evaluate.check_output_dir(out_dir, overwrite)
-    tmp = evaluate.make_temp_dir(out_dir)
     write_video = source.kind == "video" if write_video is None else write_video
-    writer = Writer(tmp, raw=raw, max_flow=max_flow, max_disp=max_disp, focal=focal, baseline=baseline,
-                    video_fps=source.fps)
     runner = Runner(predictor, batch)
     pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "disp":...} for the video
     results: dict[tuple[str, int], np.ndarray] = {}
-    bar = _progress(source.num_frames, progress, "predict")
     n_frames = 0
+    with files.staged_dir(out_dir, overwrite=overwrite) as tmp, \
+            _progress(source.num_frames, progress, "predict") as bar:
+        writer = Writer(tmp, raw=raw, max_flow=max_flow, max_disp=max_disp, focal=focal, baseline=baseline,
+                        video_fps=source.fps)
 
-    def handle(outputs):
-        for task, index, value in outputs:
-            if task == "flow":
-                color = writer.flow(index, value)
-            else:
-                color = writer.disparity(index, value)
+        def handle(outputs):
+            for task, index, value in outputs:
+                color = writer.flow(index, value) if task == "flow" else writer.disparity(index, value)
+                if source.kind == "cycle":
+                    results[(task, index)] = value
+                if write_video:
+                    pending.setdefault(index, {})[task] = color
+            if write_video:
+                _flush_video(writer, pending, source.stereo, final=False)
+
+        try:
+            prev = None
+            for index, (left, right) in enumerate(source.frames):
+                if write_video:
+                    pending.setdefault(index, {})["image"] = left
+                if prev is not None:
+                    handle(runner.add("flow", index - 1, prev, left))
+                if right is not None:
+                    handle(runner.add("disp", index, left, right))
+                prev = left
+                n_frames += 1
+                bar.update(1)
+            handle(runner.run())
+            if n_frames == 0:
+                raise PredictError("the input has no frame")
+            if not source.stereo and n_frames < 2:
+                raise PredictError("a single frame has no optical flow: give at least 2 frames")
             if source.kind == "cycle":
-                results[(task, index)] = value
+                disp_1 = bring_to_frame_t(results[("disp", 1)], results[("flow", 0)])
+                writer.disparity(0, disp_1, sub="disparity_t1_in_t")
             if write_video:
-                pending.setdefault(index, {})[task] = color
-        if write_video:
-            _flush_video(writer, pending, source.stereo, final=False)
-
-    try:
-        prev = None
-        for index, (left, right) in enumerate(source.frames):
-            if write_video:
-                pending.setdefault(index, {})["image"] = left
-            if prev is not None:
-                handle(runner.add("flow", index - 1, prev, left))
-            if right is not None:
-                handle(runner.add("disp", index, left, right))
-            prev = left
-            n_frames += 1
-            bar.update(1)
-        handle(runner.run())
-        if n_frames == 0:
-            raise PredictError("the input has no frame")
-        if not source.stereo and n_frames < 2:
-            raise PredictError("a single frame has no optical flow: give at least 2 frames")
-        if source.kind == "cycle":
-            disp_1 = evaluate.bring_to_frame_t(results[("disp", 1)], results[("flow", 0)])
-            writer.disparity(0, disp_1, sub="disparity_t1_in_t")
-        if write_video:
-            _flush_video(writer, pending, source.stereo, final=True)
-        writer.close()
+                _flush_video(writer, pending, source.stereo, final=True)
+        finally:
+            writer.close()
         writer.legends()
         desc = {"input": source.description, "kind": source.kind, "stereo": source.stereo, "frames": n_frames,
                 "outputs": writer.counts, "max_flow_px": writer.max_flow, "max_disparity_px": writer.max_disp,
@@ -416,14 +399,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
             desc.update(info)
         with open(os.path.join(tmp, "predict.json"), "w") as f:
             json.dump(desc, f, indent=1)
-        evaluate.publish_dir(tmp, out_dir)
-        return desc
-    except BaseException:
-        writer.close()
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    finally:
-        bar.close()
+    return desc
 
 
 def _flush_video(writer: Writer, pending: dict[int, dict], stereo: bool, final: bool) -> None:
@@ -452,7 +428,6 @@ def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[
                      overwrite: bool = False, batch: int = 1, progress: bool = True) -> dict:
     """Write a KITTI 2015 scene-flow (``disp_0``, ``disp_1``, ``flow``) or KITTI 2012 (``stereo``, ``flow``)
     submission for every frame id of a KITTI layout folder (``split`` default: ``testing`` if present)."""
-    kitti = _kitti()
     if not os.path.isdir(data_dir):
         raise PredictError(f"--data-dir {data_dir} is not a directory")
     if split is None:
@@ -460,24 +435,22 @@ def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[
     if year is None:
         root = os.path.join(data_dir, split) if os.path.isdir(os.path.join(data_dir, split)) else data_dir
         year = 2015 if os.path.isdir(os.path.join(root, "image_2")) else 2012
-    specs = evaluate._kitti_specs(data_dir, split, year=year, require_gt=False)
-    evaluate.check_output_dir(out_dir, overwrite)
-    tmp = evaluate.make_temp_dir(out_dir)
-    method = evaluate.ModelMethod(predictor, batch)
+    specs = kitti_specs(data_dir, split, year=year, require_gt=False)
+    method = ModelMethod(predictor, batch)
     folders = ("disp_0", "disp_1", "flow") if year == 2015 else ("stereo", "flow")
-    bar = _progress(len(specs), progress, f"KITTI {year} submission")
-    try:
+    with files.staged_dir(out_dir, overwrite=overwrite) as tmp, \
+            _progress(len(specs), progress, f"KITTI {year} submission") as bar:
         for d in folders:
             os.makedirs(os.path.join(tmp, d))
         for start in range(0, len(specs), max(1, batch)):
             frames = []
             for spec in specs[start:start + max(1, batch)]:
-                images = {k: evaluate._read_rgb(p) for k, p in spec.images.items()}
+                images = {k: read_image(p) for k, p in spec.images.items()}
                 if year == 2012:
                     images.pop("right_t1")
                 # a GT-less frame; mark disp_1 as wanted for 2015 so that the t+1 disparity is predicted
                 gt = {"disp_occ_1": np.zeros(1)} if year == 2015 else {}
-                frames.append(evaluate.Frame(spec.frame_id, images, gt))
+                frames.append(Frame(spec.frame_id, images, gt))
             for frame, pred in zip(frames, method(frames)):
                 ones = np.ones(frame.size, bool)
                 name = f"{frame.frame_id}_10.png"
@@ -491,13 +464,7 @@ def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[
                 "folders": list(folders)}
         with open(os.path.join(tmp, "submission.json"), "w") as f:
             json.dump(desc, f, indent=1)
-        evaluate.publish_dir(tmp, out_dir)
-        return desc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    finally:
-        bar.close()
+    return desc
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -516,7 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video holding left|right side by side")
-    p.add_argument("--working-size", type=evaluate.parse_size, default=None, help="network input HxW (default: the size a training workdir was trained at, else 256x512)")
+    p.add_argument("--working-size", type=cli.parse_size, default=None,
+                   help="network input HxW (default: the size a training workdir was trained at, else 256x512)")
     p.add_argument("--batch", type=int, default=4, help="pairs per inference call")
     p.add_argument("--raw", default="png", help="raw outputs: comma list of png (KITTI 16-bit), npy, or none")
     p.add_argument("--max-flow", type=float, default=None, help="flow colour-wheel radius in px (default: auto)")
@@ -543,26 +511,26 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise PredictError(f"--raw: unknown value(s) {bad}; expected png, npy or none")
         if (args.focal is None) != (args.baseline is None):
             raise PredictError("--focal and --baseline go together")
-        evaluate.check_output_dir(args.out, args.overwrite)
+        files.check_output_dir(args.out, args.overwrite)
+        height, width = args.working_size or (None, None)
         if args.kitti_submission:
             if not args.data_dir:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
-            predictor = evaluate.load_predictor(args.checkpoint, args.working_size)
+            predictor = inference.load_predictor(args.checkpoint, height=height, width=width)
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=args.progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
-            predictor = evaluate.load_predictor(args.checkpoint, args.working_size)
+            predictor = inference.load_predictor(args.checkpoint, height=height, width=width)
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=args.progress,
                                   info={"checkpoint": args.checkpoint})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        return cli.report_error(e)
     print(json.dumps(desc, indent=1))
     print(f"wrote {args.out}")
     return 0

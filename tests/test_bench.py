@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import bench
-from tests.train_helpers import REPO, enable_compilation_cache, subprocess_env
+from tests.train_helpers import REPO, enable_compilation_cache, plain_loss_and_grads, subprocess_env
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -119,7 +119,7 @@ def test_bf16_train_step_runs_on_cpu():
     cfg = _tiny_config(**{"loss.tasks": "stereo_only"})  # stereo pairs only: the cheapest loss to compile
     cfg.dtype = "bfloat16"
     cfg.global_batch = 1
-    state, step, cycles, info, _ = bench.build_train_step(cfg, micro_batch=0)
+    state, step, cycles, info, _, _ = bench.build_train_step(cfg, micro_batch=0)
     assert info["pairs_per_step"] == 4
     state, m = step(state, cycles)
     assert np.isfinite(float(m["loss"])) and int(m["nonfinite"]) == 0 and int(state["step"]) == 1
@@ -141,10 +141,10 @@ def test_micro_batched_equals_plain_through_bench_builder():
     """
     cfg = _tiny_config(**{"loss.tasks": "stereo_only"})
     cfg.global_batch = 2
-    state0, plain, cycles, _, (net, losses, lcfg, train_step, _) = bench.build_train_step(cfg, 0)
-    _, micro, _, _, _ = bench.build_train_step(cfg, 2)
+    state0, plain, cycles, _, run, net = bench.build_train_step(cfg, 0)
+    _, micro, _, _, _, _ = bench.build_train_step(cfg, 2)
     params = state0["params"]
-    (l1, t1), g1 = train_step.make_loss_and_grads(net, losses, lcfg, lcfg.pairs)(params, cycles)
+    (l1, t1), g1 = plain_loss_and_grads(net, run.loss)(params, cycles)
     (l2, t2), g2 = micro.loss_and_grads(params, cycles)
     assert abs(float(l1) - float(l2)) <= 1e-5
     for k in t1:
@@ -166,7 +166,7 @@ def test_conv_backward_records_both_weight_gradients(monkeypatch):
     """--what conv_backward: per layer shape one XLA and one 9-shifted-dots record, the same weight gradient
     (checked inside against XLA's) and the time ratio; two small layers keep it quick."""
     import argparse
-    monkeypatch.setattr(bench, "CONV3X3_LAYERS", ((4, 8, 16, 1), (4, 16, 8, 2)))
+    monkeypatch.setattr(bench.measure, "CONV3X3_LAYERS", ((4, 8, 16, 1), (4, 16, 8, 2)))
     config = bench.load_config("default:local")
     recs = bench.measure_conv_backward(config, argparse.Namespace(repeats=2, warmup=1))
     assert [r["weight_grad"] for r in recs] == ["xla", "dots", "xla", "dots"]

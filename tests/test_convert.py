@@ -1,17 +1,16 @@
 """Upstream .pth -> bridge_jax converter: file formats (written here without torch), key mapping, safety,
-error reporting, and numerical parity with the upstream network (fixture from ../shared/peer)."""
+error reporting, and numerical parity with the upstream network (the fixture, see tests/fixture.py)."""
 
 import io
-import os
 import struct
 import zipfile
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 from bridge_jax import checkpointing, convert, models
+from tests.fixture import fixture_file
 
 # ---------------------------------------------------------------- a tiny torch.save writer (pickle protocol 2)
 
@@ -267,25 +266,15 @@ def test_not_an_upstream_checkpoint(tmp_path, capsys, kind):
 
 # ---------------------------------------------------------------- parity with upstream PyTorch (fixture)
 
-FIXTURE = os.environ.get("BRIDGE_FIXTURE_DIR")
-
-
-def _fixture_dir():
-    if not FIXTURE:
-        pytest.skip("BRIDGE_FIXTURE_DIR not set (generate it with ../shared/peer/harness.py fixture)")
-    d = Path(FIXTURE)
-    if not (d / "weights.pth").is_file() or not (d / "reference.npz").is_file():
-        pytest.skip(f"BRIDGE_FIXTURE_DIR={FIXTURE} has no weights.pth + reference.npz")
-    return d
-
-
 def test_parity_with_upstream_fixture():
-    """Seed-0 upstream MonodepthNet, converted: every scale's fraction and pixel maps within 1e-4."""
-    d = _fixture_dir()
-    sd = convert.load_state_dict(d / "weights.pth")
+    """Seed-0 upstream MonodepthNet, converted: every scale's fraction and pixel maps within 1e-4.
+
+    Runs whenever the fixture folder (tests/fixture.py) holds weights.pth, which does not ship with it."""
+    weights = fixture_file("weights.pth", required_in_ci=False)
+    sd = convert.load_state_dict(weights)
     cfg, params = convert.convert_state_dict(sd)
     assert cfg["name"] == "resnet_md" and models.param_count(params) == 58_461_416
-    ref = np.load(d / "reference.npz")
+    ref = np.load(fixture_file("reference.npz"))
     x = ref["net_input"].transpose(0, 2, 3, 1)
     graphdef, _ = models.abstract_init(cfg)
     from flax import nnx

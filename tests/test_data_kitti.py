@@ -4,7 +4,7 @@ import os
 import numpy as np
 import pytest
 
-from bridge_jax.data import kitti, synthetic
+from bridge_jax.data import kitti
 from tests.test_data_fakes import CAM_TO_CAM, make_fake_raw, png_bytes, png_read
 
 
@@ -161,41 +161,3 @@ def test_raw_cycles_all_and_kitti_split(tmp_path):
 def test_raw_cycles_empty_folder_error_names_layout(tmp_path):
     with pytest.raises(ValueError, match="image_02/data"):
         kitti.raw_cycles(str(tmp_path), "all")
-
-
-# ------------------------------------------------------------------------------------------------ 2015 / 2012
-
-def test_2015_layout_from_synthetic_writer(tmp_path):
-    out = synthetic.write_kitti_layout(str(tmp_path / "syn"), num=2, seed=3, height=48, width=96)
-    samples = kitti.stereo_flow_samples(out, 2015)
-    assert [s["id"] for s in samples] == ["000000", "000001"]
-    loaded = kitti.load_stereo_flow_sample(samples[1])
-    ref = synthetic.render_sample(synthetic.sample_seed(3, 1), 48, 96)
-    np.testing.assert_array_equal(loaded["cycle"], ref["cycle"])
-    disp, valid = loaded["disp_noc"]
-    np.testing.assert_array_equal(valid, ref["noc_disp_t"])
-    assert np.abs(disp - ref["disp_t"])[valid].max() <= 0.5 / 256 + 1e-5
-    flow, fvalid = loaded["flow_occ"]
-    np.testing.assert_array_equal(fvalid, ref["valid_flow"])
-    assert np.abs(flow - ref["flow"])[fvalid].max() <= 0.5 / 64 + 1e-5
-    assert loaded["focal"] == pytest.approx(ref["focal"]) and loaded["baseline"] == pytest.approx(0.54)
-
-
-def test_2012_grayscale_layout(tmp_path):
-    t = tmp_path / "training"
-    for d in ("image_0", "image_1", "disp_occ", "flow_occ", "calib"):
-        (t / d).mkdir(parents=True)
-    rng = np.random.default_rng(1)
-    for d in ("image_0", "image_1"):
-        for s in ("10", "11"):
-            import cv2
-            cv2.imwrite(str(t / d / f"000000_{s}.png"), rng.integers(0, 256, (6, 10), dtype=np.uint8))
-    kitti.write_disp_png(str(t / "disp_occ" / "000000_10.png"), np.full((6, 10), 3.0), None)
-    (t / "calib" / "000000.txt").write_text("P0: 700 0 300 0 0 700 90 0 0 0 1 0\n"
-                                            "P1: 700 0 300 -378 0 700 90 0 0 0 1 0\n")
-    (s,) = kitti.stereo_flow_samples(str(tmp_path), 2012)
-    assert s["grayscale"] and s["flow_noc"] is None
-    ld = kitti.load_stereo_flow_sample(s)
-    c = ld["cycle"]
-    assert c.shape == (4, 6, 10, 3) and (c[..., 0] == c[..., 1]).all() and (c[..., 1] == c[..., 2]).all()
-    assert ld["focal"] == 700 and ld["baseline"] == pytest.approx(0.54)

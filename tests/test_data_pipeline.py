@@ -65,7 +65,7 @@ def test_augmentation_same_draw_for_the_four_frames():
         outs.append(out[0])
     assert len({o.tobytes() for o in outs}) > 8                      # but the draws differ between cycles
     # Through the grain pipeline as well (random_map, seeded per element).
-    ds = pipeline.make_train_dataset({"augment": True}, global_batch=4, seed=3, height=8, width=10,
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=True), global_batch=4, seed=3, height=8, width=10,
                                      process_index=0, process_count=1, source=_ConstSource(cyc))
     b = next(iter(ds))["cycle"]
     for k in range(1, 4):
@@ -112,7 +112,7 @@ def test_resize_frames_area_and_linear():
 # ------------------------------------------------------------------------------------------------ the dataset
 
 def test_synthetic_dataset_batches():
-    ds = pipeline.make_train_dataset({"source": "synthetic", "synthetic_num": 8}, global_batch=2, seed=0,
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(source="synthetic", synthetic_num=8), global_batch=2, seed=0,
                                      height=32, width=64, process_index=0, process_count=1)
     b = next(iter(ds))
     assert set(b) == {"cycle"} and b["cycle"].shape == (2, 4, 32, 64, 3) and b["cycle"].dtype == np.float32
@@ -120,7 +120,7 @@ def test_synthetic_dataset_batches():
 
 
 def test_iterator_resume_returns_same_next_batch():
-    ds = pipeline.make_train_dataset({"augment": True}, global_batch=3, seed=5, height=4, width=6,
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=True), global_batch=3, seed=5, height=4, width=6,
                                      process_index=0, process_count=1, source=_IdSource(10))
     it = iter(ds)
     for _ in range(4):                      # crosses an epoch boundary (10 cycles / 3 per batch)
@@ -135,7 +135,7 @@ def test_iterator_resume_returns_same_next_batch():
 
 @pytest.mark.slow
 def test_iterator_resume_with_worker_process():
-    cfg = {"augment": True, "num_workers": 1}
+    cfg = pipeline.DataConfig(augment=True, num_workers=1)
     ds = pipeline.make_train_dataset(cfg, global_batch=2, seed=1, height=4, width=6, process_index=0,
                                      process_count=1, source=_IdSource(9))
     it = iter(ds)
@@ -154,7 +154,7 @@ def test_two_process_shards_disjoint_and_complete():
     n = 12
     seen = []
     for p in range(2):
-        ds = pipeline.make_train_dataset({"augment": False, "num_epochs": 1}, global_batch=2, seed=9,
+        ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=False, num_epochs=1), global_batch=2, seed=9,
                                          height=4, width=6, process_index=p, process_count=2, source=_IdSource(n))
         ids = [i for b in ds for i in _ids(b)]
         assert len(ids) == n // 2
@@ -164,7 +164,7 @@ def test_two_process_shards_disjoint_and_complete():
     # Second epoch: reshuffled, still disjoint and complete.
     both = []
     for p in range(2):
-        ds = pipeline.make_train_dataset({"augment": False, "num_epochs": 2}, global_batch=2, seed=9,
+        ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=False, num_epochs=2), global_batch=2, seed=9,
                                          height=4, width=6, process_index=p, process_count=2, source=_IdSource(n))
         ids = [i for b in ds for i in _ids(b)]
         both.append(ids[n // 2:])
@@ -174,7 +174,7 @@ def test_two_process_shards_disjoint_and_complete():
 
 def test_bad_batch_and_process_arguments():
     with pytest.raises(ValueError, match="multiple of the process count"):
-        pipeline.make_train_dataset({}, global_batch=3, seed=0, process_index=0, process_count=2,
+        pipeline.make_train_dataset(pipeline.DataConfig(), global_batch=3, seed=0, process_index=0, process_count=2,
                                     source=_IdSource(4))
 
 
@@ -186,7 +186,7 @@ def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
     bad = os.path.join(data, "image_03", "data", "0000000002.png")
     truncate_file(bad)                                             # breaks cycles 1 and 2
     os.remove(os.path.join(data, "image_02", "data", "0000000004.png"))   # removes frame 4 from the listing
-    src = pipeline.make_source({"source": "kitti_raw", "data_dir": root, "split": "all"})
+    src = pipeline.make_source(pipeline.DataConfig(source="kitti_raw", data_dir=root, split="all"))
     assert len(src) == 3                                           # cycles 0, 1, 2 (3 and 4 need frame 4)
     pipeline.reset_skip_counts()
     loader = pipeline.LoadCycle(src)
@@ -202,7 +202,7 @@ def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
         loader(0)
     # Through the dataset: no crash, every batch holds the valid cycle, and the skips are counted.
     pipeline.reset_skip_counts()
-    ds = pipeline.make_train_dataset({"augment": False}, global_batch=1, seed=0, height=8, width=12,
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=False), global_batch=1, seed=0, height=8, width=12,
                                      process_index=0, process_count=1,
                                      source=pipeline.FileCycleSource(_valid_plus_corrupt(root), root))
     it = iter(ds)
@@ -228,7 +228,7 @@ def test_folder_without_cycles_gives_one_clear_error(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         folders.folder_cycles(str(tmp_path / "nope"))
     with pytest.raises(ValueError, match=str(tmp_path / "left")):
-        pipeline.make_source({"source": "folder", "data_dir": str(tmp_path / "left")})
+        pipeline.make_source(pipeline.DataConfig(source="folder", data_dir=str(tmp_path / "left")))
 
 
 def test_folder_source_png_and_jpeg(tmp_path):
@@ -243,7 +243,7 @@ def test_folder_source_png_and_jpeg(tmp_path):
     assert [r["id"] for r in recs] == ["seq/frame0", "seq/frame1", "seq/frame2"]
     assert recs[0]["paths"][1].endswith("right/frame0.png") and recs[0]["paths"][2].endswith("left/frame1.jpg")
     assert len(folders.folder_cycles(str(tmp_path))) == 3                 # subfolder sequences
-    ds = pipeline.make_train_dataset({"source": "folder", "data_dir": str(tmp_path), "augment": False},
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(source="folder", data_dir=str(tmp_path), augment=False),
                                      global_batch=3, seed=0, height=8, width=12, process_index=0, process_count=1)
     b = next(iter(ds))["cycle"]
     assert b.shape == (3, 4, 8, 12, 3)

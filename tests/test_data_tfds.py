@@ -28,8 +28,8 @@ def test_tfds_round_trip_without_tensorflow(tmp_path):
         np.testing.assert_array_equal(ex["cycle"], ref)
         assert ex["focal"] == pytest.approx(721.5377) and ex["baseline"] == pytest.approx(0.5327, abs=1e-3)
     # As a grain source of the training pipeline.
-    ds = pipeline.make_train_dataset({"source": "tfds", "data_dir": str(tmp_path / "tfds"), "split": "all",
-                                      "augment": False}, global_batch=2, seed=0, height=10, width=14,
+    ds = pipeline.make_train_dataset(pipeline.DataConfig(source="tfds", data_dir=str(tmp_path / "tfds"), split="all",
+                                      augment=False), global_batch=2, seed=0, height=10, width=14,
                                      process_index=0, process_count=1)
     b = next(iter(ds))["cycle"]
     assert b.shape == (2, 4, 10, 14, 3)

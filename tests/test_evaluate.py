@@ -6,16 +6,18 @@ import os
 import numpy as np
 import pytest
 
-from bridge_jax import evaluate, metrics
+from bridge_jax import evaluate, inference, metrics
+from bridge_jax.data import kitti
+from bridge_jax.eval import baselines, datasets, methods
 
 # ----------------------------------------------------------------------------------------------------------------
-# Rescaling to the ground-truth resolution (REFERENCE.md §1d)
+# Rescaling to the ground-truth resolution (the paper's evaluation scripts)
 
 
 def test_uniform_flow_maps_to_kitti_resolution():
     work = np.zeros((256, 512, 2), np.float32)
     work[..., 0], work[..., 1] = 4.0, -2.0                 # pixels of the 512×256 working image
-    out = evaluate.flow_to_gt_resolution(work, 375, 1242)
+    out = inference.flow_to_input_resolution(work, 375, 1242)
     assert out.shape == (375, 1242, 2)
     np.testing.assert_allclose(out[..., 0], 4.0 * 1242 / 512, rtol=1e-6)   # 9.703125 px
     np.testing.assert_allclose(out[..., 1], -2.0 * 375 / 256, rtol=1e-6)   # -2.9296875 px
@@ -24,7 +26,7 @@ def test_uniform_flow_maps_to_kitti_resolution():
 def test_flow_resize_is_align_corners_bilinear():
     rng = np.random.default_rng(1)
     work = rng.normal(size=(4, 6, 2)).astype(np.float32)
-    out = evaluate.flow_to_gt_resolution(work, 7, 11)
+    out = inference.flow_to_input_resolution(work, 7, 11)
     # independent reference: align_corners=True sample positions, separable linear interpolation with np.interp
     xs = np.arange(11) * (6 - 1) / (11 - 1)
     ys = np.arange(7) * (4 - 1) / (7 - 1)
@@ -40,11 +42,11 @@ def test_flow_resize_is_align_corners_bilinear():
 
 def test_disparity_rescale_fraction_times_width():
     work = np.full((256, 512), 10.0, np.float32)            # 10 px at 512 wide = 1.953 % of the width
-    out = evaluate.disparity_to_gt_resolution(work, 375, 1242)
+    out = inference.disparity_to_input_resolution(work, 375, 1242)
     np.testing.assert_allclose(out, 10.0 / 512 * 1242, rtol=1e-6)
     # a ramp: OpenCV INTER_LINEAR uses half-pixel centres: x_src = (x + 0.5)·w/W − 0.5, clamped
     ramp = np.tile(np.arange(8, dtype=np.float32), (2, 1))
-    out = evaluate.disparity_to_gt_resolution(ramp, 2, 16)
+    out = inference.disparity_to_input_resolution(ramp, 2, 16)
     xs = np.clip((np.arange(16) + 0.5) * 8 / 16 - 0.5, 0, 7)
     np.testing.assert_allclose(out[0], xs / 8 * 16, rtol=1e-5, atol=1e-5)
 
@@ -53,14 +55,14 @@ def test_bring_to_frame_t():
     disp_t1 = np.tile(np.arange(10, dtype=np.float32), (3, 1))     # disparity = x at t+1
     flow = np.zeros((3, 10, 2), np.float32)
     flow[..., 0] = 2.0                                              # everything moves 2 px right
-    out = evaluate.bring_to_frame_t(disp_t1, flow)
+    out = methods.bring_to_frame_t(disp_t1, flow)
     np.testing.assert_allclose(out[:, :8], np.arange(2, 10)[None].repeat(3, 0))
     np.testing.assert_allclose(out[:, 8:], 9.0)                     # border clamp
 
 
 def test_fill_invalid_disparity_like_devkit():
     disp = np.array([[0, 5, 0, 0, 3, 0], [0, 0, 0, 0, 0, 0]], np.float32)
-    out = evaluate.fill_invalid_disparity(disp, disp > 0)
+    out = baselines.fill_invalid_disparity(disp, disp > 0)
     np.testing.assert_array_equal(out, [[5, 5, 3, 3, 3, 3], [0, 0, 0, 0, 0, 0]])
 
 
@@ -69,7 +71,6 @@ def test_fill_invalid_disparity_like_devkit():
 
 
 def test_kitti_png_roundtrip_metrics(tmp_path, rng):
-    from bridge_jax.data import kitti
     h, w = 20, 30
     gt_flow = np.round(rng.normal(0, 20, (h, w, 2)) * 64) / 64
     valid = rng.random((h, w)) > 0.3
@@ -83,8 +84,8 @@ def test_kitti_png_roundtrip_metrics(tmp_path, rng):
         p, _ = kitti.read_flow_png(str(tmp_path / "pred_flow.png"))
         m = metrics.flow_metrics(p, g, gv)
         assert m["epe_all"] == pytest.approx(epe, abs=1e-6) and m["fl_all"] == 0.0
-        gd = evaluate._disp_only(kitti.read_disp_png(str(tmp_path / "gt_disp.png")))
-        pd = evaluate._disp_only(kitti.read_disp_png(str(tmp_path / "pred_disp.png")))
+        gd = np.where(*reversed(kitti.read_disp_png(str(tmp_path / "gt_disp.png"))), 0.0)
+        pd = np.where(*reversed(kitti.read_disp_png(str(tmp_path / "pred_disp.png"))), 0.0)
         m = metrics.disparity_metrics(pd, gd, gd > 0)
         assert m["epe_all"] == pytest.approx(epe, abs=1e-6) and m["d1_all"] == 0.0
 
@@ -112,7 +113,6 @@ def test_baselines_beat_zero_motion(synthetic_dir):
         for red in ("per_image_mean", "pooled"):
             assert cv[task][red][name] < zero[task][red][name], (task, name, red)
     # zero-motion flow EPE is the mean GT flow norm (independent check on the GT itself)
-    from bridge_jax.data import kitti
     norms = []
     for i in range(3):
         f, v = kitti.read_flow_png(os.path.join(synthetic_dir, "flow_occ", f"{i:06d}_10.png"))
@@ -121,15 +121,15 @@ def test_baselines_beat_zero_motion(synthetic_dir):
     assert "| zero motion | pooled |" in res["markdown"]
 
 
-class _FakePredictor:
-    """Returns the same working-size map for every pair and records call sizes."""
+class _FakePredictor(inference.Predictor):
+    """The predictor with its network replaced by the same working-size map for every pair; records call sizes."""
 
     def __init__(self, h=64, w=128):
-        self.h, self.w, self.calls = h, w, []
+        self.height, self.width, self.separate, self.calls = h, w, False, []
 
-    def predict_pairs_working(self, a, b):
-        self.calls.append(len(a))
-        out = np.zeros((len(a), self.h, self.w, 2), np.float32)
+    def run_network(self, pairs, is_stereo=False):
+        self.calls.append(len(pairs))
+        out = np.zeros((len(pairs), self.height, self.width, 2), np.float32)
         out[..., 0] = -4.0                               # disparity 4 working px / flow u = −4 px
         return out
 
@@ -139,12 +139,11 @@ def test_fixed_batch_shape_and_scaling(synthetic_dir):
     res = evaluate.evaluate(fake, "synthetic", synthetic_dir, baselines=False, batch=2, progress=False)
     assert fake.calls == [6, 6]                           # 3 frames × 3 pairs, padded to 2 × 3 per call
     # the synthetic GT is 128×256, working 64×128: disparity 4 px → 4/128·256 = 8 px, flow u −4 → −8 px
-    from bridge_jax.data import kitti
-    gd = evaluate._disp_only(kitti.read_disp_png(os.path.join(synthetic_dir, "disp_occ_0", "000000_10.png")))
+    gd = np.where(*reversed(kitti.read_disp_png(os.path.join(synthetic_dir, "disp_occ_0", "000000_10.png"))), 0.0)
     expected = np.abs(8.0 - gd[gd > 0]).mean()
-    frames = evaluate.list_frames("synthetic", synthetic_dir)
-    frame = evaluate.load_frame(frames[0], "synthetic")
-    pred = evaluate.ModelMethod(fake)([frame])[0]
+    frames = datasets.list_frames("synthetic", synthetic_dir)
+    frame = datasets.load_frame(frames[0], "synthetic")
+    pred = methods.ModelMethod(fake)([frame])[0]
     np.testing.assert_allclose(pred["disp_t"], 8.0, rtol=1e-6)
     np.testing.assert_allclose(pred["flow"][..., 0], -8.0, rtol=1e-6)
     m = metrics.disparity_metrics(pred["disp_t"], frame.gt["disp_occ_0"])
@@ -183,12 +182,12 @@ def test_bad_inputs(synthetic_dir, tmp_path, capsys):
     broken = tmp_path / "broken"
     shutil.copytree(synthetic_dir, broken)
     os.remove(broken / "flow_occ" / "000001_10.png")
-    with pytest.raises(evaluate.EvaluationError, match="flow_occ"):
-        evaluate.list_frames("synthetic", str(broken))
+    with pytest.raises(datasets.EvaluationError, match="flow_occ"):
+        datasets.list_frames("synthetic", str(broken))
     # an unreadable image
     (broken / "flow_occ" / "000001_10.png").write_bytes(b"")
     (broken / "image_2" / "000000_10.png").write_bytes(b"not a png")
-    with pytest.raises(evaluate.EvaluationError, match="000000_10.png"):
+    with pytest.raises(datasets.EvaluationError, match="000000_10.png"):
         evaluate.evaluate(None, "synthetic", str(broken), progress=False)
     # a checkpoint that is not one
     rc = evaluate.main(["--checkpoint", str(tmp_path), "--dataset", "synthetic", "--data-dir", synthetic_dir,
@@ -201,7 +200,6 @@ def test_bad_inputs(synthetic_dir, tmp_path, capsys):
 def _velodyne_points_for(calib_dir, pixels, depths):
     """Velodyne points (N, 4) that project onto the given (col, row) pixels at camera depth z (inverting
     P_rect_02 · R_rect_00 · [R|T]; +1 on the pixel because the projection subtracts 1, MATLAB style)."""
-    from bridge_jax.data import kitti
     c2c = kitti.read_calib_file(os.path.join(calib_dir, "calib_cam_to_cam.txt"))
     v2c = kitti.read_calib_file(os.path.join(calib_dir, "calib_velo_to_cam.txt"))
     p2 = c2c["P_rect_02"].reshape(3, 4)
@@ -220,7 +218,6 @@ def _velodyne_points_for(calib_dir, pixels, depths):
 
 def test_eigen_velodyne_smoke(tmp_path):
     from tests.test_data_fakes import make_fake_raw
-    from bridge_jax.data import kitti
     root = str(tmp_path / "raw")
     make_fake_raw(root, {"2011_09_26_drive_0001": 3}, height=16, width=32)
     calib = os.path.join(root, "2011_09_26")
@@ -264,11 +261,54 @@ def test_kitti2012_layout(synthetic_dir, tmp_path):
     for src, dst in (("flow_occ", "flow_occ"), ("flow_noc", "flow_noc"), ("disp_occ_0", "disp_occ"),
                      ("disp_noc_0", "disp_noc")):
         shutil.copytree(os.path.join(synthetic_dir, src), root / dst)
-    spec = evaluate.list_frames("kitti2012", str(tmp_path / "kitti2012"))[0]
-    frame = evaluate.load_frame(spec, "kitti2012")
+    spec = datasets.list_frames("kitti2012", str(tmp_path / "kitti2012"))[0]
+    frame = datasets.load_frame(spec, "kitti2012")
     img = frame.images["left_t"]
     assert (img[..., 0] == img[..., 1]).all() and (img[..., 1] == img[..., 2]).all()
     res = evaluate.evaluate(None, "kitti2012", str(tmp_path / "kitti2012"), progress=False)
     zero = res["methods"]["zero"]
     assert set(zero) == {"flow", "disparity"}            # no t+1 disparity GT, no calibration → no SF, no depth
     assert res["methods"]["opencv"]["flow"]["pooled"]["epe_noc"] < zero["flow"]["pooled"]["epe_noc"]
+
+
+def test_2015_layout_from_synthetic_writer(tmp_path):
+    from bridge_jax.data import synthetic
+    out = synthetic.write_kitti_layout(str(tmp_path / "syn"), num=2, seed=3, height=48, width=96)
+    specs = datasets.list_frames("kitti2015", out)
+    assert [s.frame_id for s in specs] == ["000000", "000001"]
+    frame = datasets.load_frame(specs[1], "kitti2015")
+    ref = synthetic.render_sample(synthetic.sample_seed(3, 1), 48, 96)
+    cycle = np.stack([frame.images[k] for k in ("left_t", "right_t", "left_t1", "right_t1")])
+    np.testing.assert_array_equal(cycle, ref["cycle"])
+    disp = frame.gt["disp_noc_0"]
+    np.testing.assert_array_equal(disp > 0, ref["noc_disp_t"])
+    assert np.abs(disp - ref["disp_t"])[ref["noc_disp_t"]].max() <= 0.5 / 256 + 1e-5
+    np.testing.assert_array_equal(frame.gt["flow_occ_valid"], ref["valid_flow"])
+    assert np.abs(frame.gt["flow_occ"] - ref["flow"])[ref["valid_flow"]].max() <= 0.5 / 64 + 1e-5
+    assert frame.focal == pytest.approx(ref["focal"]) and frame.baseline == pytest.approx(0.54)
+    # the in-memory frames (training's validation) are the same samples, without the 16-bit PNG rounding
+    mem = datasets.synthetic_frames(2, 3, 48, 96)[1]
+    for k, img in frame.images.items():
+        np.testing.assert_array_equal(mem.images[k], img)
+    np.testing.assert_array_equal(mem.gt["disp_noc_0"], np.where(ref["noc_disp_t"], ref["disp_t"], 0.0))
+    np.testing.assert_array_equal(mem.gt["flow_noc_valid"], ref["noc_flow"])
+
+
+def test_2012_grayscale_layout_with_calibration(tmp_path):
+    import cv2
+    t = tmp_path / "training"
+    for d in ("image_0", "image_1", "disp_occ", "calib"):
+        (t / d).mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    for d in ("image_0", "image_1"):
+        for s in ("10", "11"):
+            cv2.imwrite(str(t / d / f"000000_{s}.png"), rng.integers(0, 256, (6, 10), dtype=np.uint8))
+    kitti.write_disp_png(str(t / "disp_occ" / "000000_10.png"), np.full((6, 10), 3.0), None)
+    (t / "calib" / "000000.txt").write_text("P0: 700 0 300 0 0 700 90 0 0 0 1 0\n"
+                                            "P1: 700 0 300 -378 0 700 90 0 0 0 1 0\n")
+    (spec,) = datasets.list_frames("kitti2012", str(tmp_path))
+    frame = datasets.load_frame(spec, "kitti2012")
+    c = np.stack(list(frame.images.values()))
+    assert c.shape == (4, 6, 10, 3) and (c[..., 0] == c[..., 1]).all() and (c[..., 1] == c[..., 2]).all()
+    assert frame.focal == 700 and frame.baseline == pytest.approx(0.54)
+    np.testing.assert_allclose(frame.gt["disp_occ_0"], 3.0)

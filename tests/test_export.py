@@ -4,7 +4,7 @@ import jax
 import numpy as np
 import pytest
 
-from bridge_jax import checkpointing, export, models
+from bridge_jax import checkpointing, export, inference, models
 
 
 @pytest.fixture(scope="module")
@@ -17,8 +17,9 @@ def tiny_ckpt(tmp_path_factory):
 
 def test_export_round_trip(tiny_ckpt, tmp_path):
     graphdef, params, _ = tiny_ckpt
-    exp = export.export_network(graphdef, params, height=64, width=128, batch=2,
-                                model_cfg=models.model_config("resnet_md_tiny"))
+    predictor = inference.Predictor(graphdef, params, height=64, width=128,
+                                    model_cfg=models.model_config("resnet_md_tiny"))
+    exp = export.export_network(predictor, batch=2)
     out = export.serialize_to_file(exp, tmp_path / "m.stablehlo")
     loaded = export.load_exported(out)
     x = np.random.default_rng(0).uniform(size=(2, 64, 128, 6)).astype(np.float32)

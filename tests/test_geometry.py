@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import geometry
+from bridge_jax.models import layers
 
 
 def np_warp(img, disp):
@@ -95,7 +96,7 @@ def test_pyramid_and_upsample():
     sq = jnp.tile((jnp.arange(16, dtype=jnp.float32) ** 2)[None, :, None], (8, 1, 1))
     half = geometry.resize_bilinear(sq, (4, 8))
     np.testing.assert_allclose(half[0, 3, 0], (1 * 25 + 3 * 36 + 3 * 49 + 1 * 64) / 8, rtol=1e-6)
-    up = geometry.upsample_nearest_2x(jnp.array([[[[1.0], [2.0]]]]))
+    up = layers.upsample_nearest2x(jnp.array([[[[1.0], [2.0]]]]))
     np.testing.assert_array_equal(up[0, :, :, 0], [[1, 1, 2, 2], [1, 1, 2, 2]])
     with pytest.raises(ValueError, match="divisible by 8"):
         geometry.image_pyramid(jnp.zeros((1, 12, 16, 3)))

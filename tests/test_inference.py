@@ -29,7 +29,7 @@ class ConstantPredictor(inference.Predictor):
         self.separate = False
         self.seen = []
 
-    def run_network(self, pairs, task="flow"):
+    def run_network(self, pairs, is_stereo=False):
         self.seen.append(pairs)
         return np.broadcast_to(self.field, (len(pairs),) + self.field.shape).astype(np.float32)
 
@@ -108,14 +108,22 @@ def test_bad_input(predictor):
         inference.Predictor(predictor.graphdef, predictor.params, height=100, width=256)
     with pytest.raises(ValueError, match="dtype"):
         inference.Predictor(predictor.graphdef, predictor.params, height=H, width=W, dtype="float16")
+    with pytest.raises(ValueError, match="task"):
+        predictor.predict_pair(a, a, task="disparity")
 
 
 def test_predict_cycle_consistent_with_pairs(predictor, rng):
+    """predict_cycle = the pairs' working maps, flow brought to the input size by the flow rule and disparity by
+    the disparity rule (what evaluate and predict write)."""
     imgs = [rng.integers(0, 256, size=(70, 150, 3), dtype=np.uint8) for _ in range(4)]
     out = predictor.predict_cycle(*imgs)
     assert out["disp_t"].shape == (70, 150) and out["flow"].shape == (70, 150, 2)
-    np.testing.assert_allclose(out["disp_t"], -predictor.predict_pair(imgs[0], imgs[1])[..., 0], atol=1e-5)
-    np.testing.assert_allclose(out["disp_t1"], -predictor.predict_pair(imgs[2], imgs[3])[..., 0], atol=1e-5)
+    work = [predictor.run_network(predictor.prepare([a], [b])[0], stereo)[0]
+            for a, b, stereo in ((imgs[0], imgs[1], True), (imgs[2], imgs[3], True), (imgs[0], imgs[2], False))]
+    np.testing.assert_allclose(out["disp_t"], inference.disparity_to_input_resolution(-work[0][..., 0], 70, 150),
+                               atol=1e-5)
+    np.testing.assert_allclose(out["disp_t1"], inference.disparity_to_input_resolution(-work[1][..., 0], 70, 150),
+                               atol=1e-5)
     np.testing.assert_allclose(out["flow"], predictor.predict_pair(imgs[0], imgs[2]), atol=1e-5)
     batch = predictor.predict_pairs(np.stack(imgs[:2]), np.stack(imgs[2:]))
     assert batch.shape == (2, 70, 150, 2)

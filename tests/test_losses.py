@@ -13,7 +13,23 @@ H, W = 64, 128
 
 # jitted once per config: eager op-by-op dispatch of the 4-scale loss is far slower than compiling it
 cycle_loss = jax.jit(losses.cycle_loss, static_argnums=2)
-batch_cycle_loss = jax.jit(losses.batch_cycle_loss, static_argnums=2)
+
+
+def photometric_value(estimate, target, mask, alpha=0.85):
+    """losses.photometric_loss of one cycle as a number (its parts normalised, then mixed)."""
+    return float(losses.reduce_over_cycles(losses.photometric_loss(estimate, target, mask), "cycle").value(alpha))
+
+
+def two_warp_value(px, former, latter, mask_fwd, mask_bwd, cfg):
+    """The weighted 2-warp loss of one cycle at one scale and its per-chain values, through the functions the
+    training runs (two_warp_chains + two_warp_loss) on the 1-warp reconstructions of the maps."""
+    est_fwd = geometry.warp(latter, px[:4])
+    est_bwd = geometry.warp(former, px[4:])
+    p = losses.PairMaps(former, latter, px[:4], px[4:], est_fwd, est_bwd, mask_fwd, mask_bwd)
+    chains = losses.two_warp_chains(cfg.two_warp, p, cfg.two_warp_target)
+    terms = {c.name: float(losses.reduce_over_cycles(t, "cycle").value(cfg.alpha))
+             for c, t in zip(chains, losses.two_warp_loss(chains))}
+    return cfg.two_warp_term_weight() * sum(terms.values()), terms
 
 
 def np_ssim(x, y):
@@ -46,8 +62,8 @@ def test_photometric_loss_normalisation(rng):
     mask = (rng.uniform(size=(2, 8, 8, 1)) > 0.3).astype(np.float32)
     l1 = np.mean(np.abs(est - img) * mask) / np.mean(mask)
     ss = np.mean(np.stack([np_ssim(est[i] * mask[i], img[i] * mask[i]) for i in range(2)])) / np.mean(mask)
-    np.testing.assert_allclose(losses.photometric_loss(est, img, mask), 0.85 * ss + 0.15 * l1, rtol=1e-5)
-    assert float(losses.photometric_loss(img, img, mask)) == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(photometric_value(est, img, mask), 0.85 * ss + 0.15 * l1, rtol=1e-5)
+    assert photometric_value(img, img, mask) == pytest.approx(0.0, abs=1e-6)
 
 
 def test_smoothness_ramp_kink_and_edges():
@@ -69,8 +85,9 @@ def test_smoothness_ramp_kink_and_edges():
 def test_lr_consistency_zero_for_consistent_maps():
     frac = np.full((2, 8, 16, 2), [-0.1, 0.0], np.float32)
     px = geometry.frac_to_px(frac)
-    assert float(losses.lr_consistency_loss(frac, -frac, px)) == pytest.approx(0.0, abs=1e-7)
-    assert float(losses.lr_consistency_loss(frac, frac, px)) == pytest.approx(0.1, rel=1e-5)  # |-f - f| avg over 2 ch
+    # the backward map brought into the first frame: W(D', D)
+    assert float(losses.lr_consistency_loss(frac, geometry.warp(-frac, px))) == pytest.approx(0.0, abs=1e-7)
+    assert float(losses.lr_consistency_loss(frac, geometry.warp(frac, px))) == pytest.approx(0.1, rel=1e-5)  # |-f - f| avg over 2 ch
 
 
 def test_pair_layout_and_direction():
@@ -122,12 +139,12 @@ def test_two_warp_zero_for_gt_and_positive_when_perturbed(variant, target):
     px = jnp.asarray(maps["px"][s])
     former, latter = cyc.pair_images(c)
     ones = jnp.ones((4, H, W, 1), jnp.float32)
-    good, terms = losses.two_warp_loss(px[:4], px[4:], former, latter, ones, ones, cfg)
+    good, terms = two_warp_value(px, former, latter, ones, ones, cfg)
     assert float(good) < 1e-5, terms
     # perturb one map used by every variant's chains: the left flow / stereo at t by a 1.5 px shift
     for pair in (cyc.FLOW_LEFT, cyc.STEREO_T, cyc.FLOW_RIGHT):
         bad_px = px.at[pair].add(jnp.array([1.5, 0.0])).at[4 + pair].add(jnp.array([-1.5, 0.0]))
-        bad, _ = losses.two_warp_loss(bad_px[:4], bad_px[4:], former, latter, ones, ones, cfg)
+        bad, _ = two_warp_value(bad_px, former, latter, ones, ones, cfg)
         used = {"full1": (cyc.FLOW_LEFT, cyc.STEREO_T), "full2": (cyc.FLOW_LEFT, cyc.STEREO_T, cyc.FLOW_RIGHT),
                 "full3": (cyc.FLOW_LEFT, cyc.STEREO_T, cyc.FLOW_RIGHT)}[variant]
         if pair in used:
@@ -162,7 +179,7 @@ def test_batch_of_identical_cycles_equals_one_cycle(rng, reduction, b):
     one, t1 = cycle_loss(maps, jnp.asarray(cycle), cfg)
     cycles = jnp.asarray(np.stack([cycle] * b))
     bmaps = {k: tuple(jnp.concatenate([m] * b) for m in v) for k, v in maps.items()}
-    total, terms = batch_cycle_loss(bmaps, cycles, cfg)
+    total, terms = cycle_loss(bmaps, cycles, cfg)
     np.testing.assert_allclose(total, one, rtol=1e-5)
     np.testing.assert_allclose(terms["lr"], t1["lr"], rtol=1e-5)
     np.testing.assert_allclose(terms["two_warp"], t1["two_warp"], rtol=1e-5)
@@ -173,10 +190,10 @@ def test_reductions_differ_only_for_different_cycles(rng):
     cycle, _ = translating_cycle(H, W)
     cycles = jnp.asarray(np.stack([cycle, cycle[:, :, ::-1]]))
     maps = _random_maps(rng, 16, H, W)
-    t = {r: batch_cycle_loss(maps, cycles, losses.LossConfig(reduction=r))[1] for r in ("cycle", "batch")}
-    parts = jax.jit(jax.vmap(lambda m, c: losses.cycle_loss_parts(m, c, losses.LossConfig())))(
+    t = {r: cycle_loss(maps, cycles, losses.LossConfig(reduction=r))[1] for r in ("cycle", "batch")}
+    terms = jax.jit(jax.vmap(lambda m, c: losses.cycle_terms(m, c, losses.LossConfig())))(
         cyc.unbatch_maps(maps, 2), cycles)
-    num, den = (np.asarray(x, np.float64) for x in parts["l1_fwd/0"])
+    num, den = (np.asarray(x, np.float64) for x in terms[0].photo_fwd.l1)
     np.testing.assert_allclose(t["cycle"]["l1_fwd/0"], np.mean(num / den), rtol=1e-5)
     np.testing.assert_allclose(t["batch"]["l1_fwd/0"], num.mean() / den.mean(), rtol=1e-5)
 
@@ -204,7 +221,7 @@ def test_jit_grad_compiles_once_no_nan_for_zero_maps():
     def loss_fn(px):
         traces.append(1)
         maps = {"px": px, "frac": tuple(geometry.px_to_frac(p) for p in px)}
-        return losses.batch_cycle_loss(maps, cycles, cfg)[0]
+        return losses.cycle_loss(maps, cycles, cfg)[0]
 
     f = jax.jit(jax.value_and_grad(loss_fn))
     zeros = tuple(jnp.zeros((16, H >> s, W >> s, 2)) for s in range(4))
@@ -227,3 +244,35 @@ def test_bad_shapes_raise_value_error():
         cycle_loss(maps, jnp.zeros((3, 64, 128, 3)), cfg)
     with pytest.raises(ValueError, match="cycles must have shape"):
         cyc.batch_pair_inputs(jnp.zeros((4, 64, 128, 3)))
+    with pytest.raises(ValueError, match="cycles must have shape"):
+        cycle_loss(maps, jnp.zeros((1, 2, 4, 64, 128, 3)), cfg)
+
+
+def test_two_warp_chains_match_numpy_reference(rng):
+    """full-2 (eqs. 10-12) against a float64 numpy re-derivation: each chain warps a 1-warp reconstruction a
+    second time, its occlusion map is carried across by the other time's stereo map, and the result is compared
+    with the 1-warp reconstruction of the same frame under that mask."""
+    from tests.test_geometry import np_warp
+    h, w = 12, 20
+    former = rng.uniform(size=(4, h, w, 3))
+    latter = rng.uniform(size=(4, h, w, 3))
+    px_f = rng.uniform(-3, 3, size=(4, h, w, 2))
+    px_b = rng.uniform(-3, 3, size=(4, h, w, 2))
+    m_f = rng.uniform(0.2, 1.0, size=(4, h, w, 1))
+    m_b = rng.uniform(0.2, 1.0, size=(4, h, w, 1))
+    est_f = np.stack([np_warp(latter[k], px_f[k]) for k in range(4)])
+    est_b = np.stack([np_warp(former[k], px_b[k]) for k in range(4)])
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    p = losses.PairMaps(*(f32(x) for x in (former, latter, px_f, px_b, est_f, est_b, m_f, m_b)))
+    chains = losses.two_warp_chains("full2", p, "reconstruction")
+    assert [c.name for c in chains] == ["L_t1->L_t->R_t", "R_t1->R_t->L_t"]
+    got = [float(losses.reduce_over_cycles(t, "cycle").value(0.85)) for t in losses.two_warp_loss(chains)]
+    S1, FL, FR, S0 = cyc.STEREO_T1, cyc.FLOW_LEFT, cyc.FLOW_RIGHT, cyc.STEREO_T
+    # (image, its second map, target, mask, map that carries the mask)
+    spec = [(est_f[FL], px_b[S0], est_f[FR], m_f[FL], px_b[S1]), (est_f[FR], px_f[S0], est_f[FL], m_f[FR], px_f[S1])]
+    for (image, flow, target, mask, mask_flow), value in zip(spec, got):
+        est2 = np_warp(image, flow)
+        m = np_warp(np.repeat(mask, 3, -1), mask_flow)[..., :1]
+        ssim_term = np.mean(np_ssim(est2 * m, target * m)) / np.mean(m)
+        l1_term = np.mean(np.abs(est2 - target) * m) / np.mean(m)
+        assert value == pytest.approx(0.85 * ssim_term + 0.15 * l1_term, rel=2e-4)

@@ -1,15 +1,12 @@
-"""Parity of geometry + losses with the upstream PyTorch code, on the peer fixture.
+"""Parity of geometry + losses with the upstream PyTorch code, on the upstream fixture.
 
-The fixture (seeded inputs, maps, warps, masks, every loss term of upstream's train step) is written by
-`../shared/peer/harness.py fixture` (see ../shared/peer/README.md). Point BRIDGE_FIXTURE_DIR at it
-(default /tmp/peer/fixture); the tests skip with a reason when it is absent.
+The fixture (seeded inputs, maps, warps, masks, every loss term of upstream's train step) is found as described in
+tests/fixture.py: `../shared/peer/fixture/` beside the repository by default, BRIDGE_FIXTURE_DIR to override; CI
+fails when it is missing.
 
 Upstream stores NCHW arrays of 8 rows = 4 pairs x 2 cycles (pair-major); bridge_jax is NHWC with
 8 rows per cycle (forward pairs 0..3, then backward pairs 0..3).
 """
-
-import os
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -17,18 +14,14 @@ import numpy as np
 import pytest
 
 from bridge_jax import geometry, losses
-
-FIXTURE = pathlib.Path(os.environ.get("BRIDGE_FIXTURE_DIR", "/tmp/peer/fixture"))
-pytestmark = pytest.mark.skipif(
-    not (FIXTURE / "reference.npz").exists(),
-    reason=f"upstream fixture not found at {FIXTURE} (set BRIDGE_FIXTURE_DIR; see ../shared/peer/README.md)")
+from tests.fixture import fixture_file
 
 RTOL = 1e-5
 
 
 @pytest.fixture(scope="module")
 def ref():
-    return dict(np.load(FIXTURE / "reference.npz"))
+    return dict(np.load(fixture_file("reference.npz")))
 
 
 def nhwc(x):
@@ -90,6 +83,11 @@ def test_masks_and_reconstructions_match_upstream(ref, s):
     fwd = jnp.asarray(nhwc(ref[f"syn_fwd_px_{s}"]))
     bwd = jnp.asarray(nhwc(ref[f"syn_bwd_px_{s}"]))
     occ_fw, occ_bw = geometry.forward_backward_occlusion(fwd, bwd, warped_bw_norm=False)
+    # the same check on pre-warped maps (how the cycle loss calls it) gives the same decisions
+    pre = geometry.forward_backward_occlusion(fwd, bwd, geometry.warp(bwd, fwd), geometry.warp(fwd, bwd),
+                                              warped_bw_norm=False)
+    np.testing.assert_array_equal(np.asarray(pre[0]), np.asarray(occ_fw))
+    np.testing.assert_array_equal(np.asarray(pre[1]), np.asarray(occ_bw))
     for occ, key in ((occ_fw, "fw"), (occ_bw, "bw")):
         decided = np.abs(nhwc(ref[f"syn_occ_{key}_margin_{s}"])) >= 1e-4
         np.testing.assert_array_equal(np.asarray(occ)[decided], nhwc(ref[f"syn_occ_{key}_{s}"])[decided])
@@ -112,7 +110,7 @@ def test_every_loss_term_matches_upstream(ref):
     maps = fixture_maps(ref, "syn_")
     cycles = jnp.asarray(np.stack([nhwc(ref[k]) for k in ("L_t", "R_t", "L_t1", "R_t1")], axis=1))
     cfg = losses.LossConfig.upstream(two_warp="full2")
-    total, terms = losses.batch_cycle_loss(maps, cycles, cfg, pyramids=fixture_pyramids(ref))
+    total, terms = losses.cycle_loss(maps, cycles, cfg, pyramids=fixture_pyramids(ref))
     for s in range(4):
         for d in ("fwd", "bwd"):
             close(terms[f"l1_{d}/{s}"], ref[f"{prefix}l1_{d}_{s}"])
@@ -127,7 +125,7 @@ def test_every_loss_term_matches_upstream(ref):
     close(terms["photo_bwd"], ref[f"{prefix}image_bwd"])
     close(terms["lr"], ref[f"{prefix}lr"])
     close(total, ref[f"{prefix}total_type2"])
-    total0, _ = losses.batch_cycle_loss(maps, cycles, losses.LossConfig.upstream(), pyramids=fixture_pyramids(ref))
+    total0, _ = losses.cycle_loss(maps, cycles, losses.LossConfig.upstream(), pyramids=fixture_pyramids(ref))
     close(total0, ref[f"{prefix}total_type0"])
 
 

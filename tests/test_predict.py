@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from bridge_jax import evaluate, predict
+from bridge_jax import inference, predict
+from bridge_jax.eval import datasets, methods
 
 H, W = 100, 200          # input resolution, deliberately not the working size (128×256)
 
@@ -16,7 +17,7 @@ H, W = 100, 200          # input resolution, deliberately not the working size (
 
 @pytest.fixture(scope="module")
 def predictor(tiny_checkpoint):
-    return evaluate.load_predictor(tiny_checkpoint, (128, 256))
+    return inference.load_predictor(tiny_checkpoint, height=128, width=256)
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +26,12 @@ def frames():
     base = cv2.resize(rng.integers(0, 255, (H // 4, W // 4 + 8, 3), dtype=np.uint8), (W + 32, H),
                       interpolation=cv2.INTER_CUBIC)
     return [np.ascontiguousarray(base[:, 8 * i: 8 * i + W]) for i in range(4)]   # shifts of 8 px
+
+
+def _disp(disp_valid):
+    """A KITTI disparity PNG's (disparity, valid) as one map, 0 where invalid."""
+    disp, valid = disp_valid
+    return np.where(valid, disp, 0.0)
 
 
 def _write(path, rgb):
@@ -68,7 +75,7 @@ def test_stereo_pair_with_depth(predictor, frames, tmp_path):
     predict.predict_source(predictor, src, str(out2), focal=100.0, baseline=0.5, progress=False, raw=("png",))
     _decodable(out2 / "disparity" / "000000.png")
     _decodable(out2 / "depth" / "000000.png")
-    disp = evaluate._disp_only(kitti.read_disp_png(str(out2 / "disparity_kitti" / "000000.png")))
+    disp = _disp(kitti.read_disp_png(str(out2 / "disparity_kitti" / "000000.png")))
     assert disp.shape == (H, W)
     for leg in ("legend_disparity.png", "legend_depth.png"):
         assert (out2 / leg).is_file()
@@ -152,16 +159,16 @@ def test_kitti_submission_roundtrip(predictor, tmp_path):
     out = tmp_path / "sub"
     desc = predict.kitti_submission(predictor, str(data), str(out), progress=False)
     assert desc["kitti_year"] == 2015
-    specs = evaluate.list_frames("folder", str(data))
-    frames = [evaluate.load_frame(s, "folder") for s in specs]
-    preds = evaluate.ModelMethod(predictor)(frames)
+    specs = datasets.list_frames("folder", str(data))
+    frames = [datasets.load_frame(s, "folder") for s in specs]
+    preds = methods.ModelMethod(predictor)(frames)
     # flow agrees with the inference module's own input-resolution path (align_corners + u·w/W, v·h/H)
     np.testing.assert_allclose(preds[0]["flow"], predictor.predict_pair(frames[0].images["left_t"],
                                                                         frames[0].images["left_t1"]), atol=1e-4)
     for frame, pred in zip(frames, preds):
         name = f"{frame.frame_id}_10.png"
-        d0 = evaluate._disp_only(kitti.read_disp_png(str(out / "disp_0" / name)))
-        d1 = evaluate._disp_only(kitti.read_disp_png(str(out / "disp_1" / name)))
+        d0 = _disp(kitti.read_disp_png(str(out / "disp_0" / name)))
+        d1 = _disp(kitti.read_disp_png(str(out / "disp_1" / name)))
         fl, valid = kitti.read_flow_png(str(out / "flow" / name))
         assert d0.shape == d1.shape == (128, 256) and valid.all()
         np.testing.assert_allclose(d0, np.clip(pred["disp_t"], 1 / 256, 255), atol=1 / 256 + 1e-6)

@@ -10,18 +10,19 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import pytest
-from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, cycle, losses, models, train, train_step
+from bridge_jax import checkpointing, setup, train, train_step
 from bridge_jax.configs import default as default_config
-from tests.train_helpers import H, W, REPO, enable_compilation_cache, subprocess_env, tiny_config, train_cli
+from bridge_jax.micro_batch import MicroBatchedStep
+from tests.train_helpers import (H, W, REPO, enable_compilation_cache, make_step, plain_loss_and_grads, subprocess_env,
+                                 tiny_config, train_cli)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -146,27 +147,9 @@ def test_resume_gives_identical_params_and_batches(tmp_path, monkeypatch):
 # Step level: sharding, trace counting, NaN guard, micro-batching
 # ------------------------------------------------------------------------------------------------------
 
-def _setup(num_devices=None, micro_batch=0, lr=1e-3, separate=False, model="resnet_md_tiny",
-           loss_cfg=None):
-    cfg = tiny_config(lr=lr)
-    mcfg = models.model_config(model)
-    lcfg = loss_cfg or losses.LossConfig()
-    graphdef, params = models.init(jax.random.key(0), mcfg)
-    if separate:
-        params = {"stereo": params, "flow": models.init(jax.random.key(1), mcfg)[1]}
-    tx, schedule = train_step.make_optimizer(cfg, 100)
-    net = train_step.Network(models.apply, graphdef, separate=separate)
-    state = train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(2)))
-    kw = {}
-    if num_devices is not None:
-        mesh = jax.make_mesh((num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,),
-                             devices=jax.devices()[:num_devices])
-        rep = NamedSharding(mesh, P())
-        kw = dict(state_sharding=jax.tree.map(lambda _: rep, state), batch_sharding=NamedSharding(mesh, P("data")))
-        state = jax.device_put(state, kw["state_sharding"])
-    step = train_step.build_step(net, losses, lcfg, lcfg.pairs, tx, schedule, micro_batch=micro_batch,
-                                 num_devices=num_devices or 1, **kw)
-    return state, step, net, lcfg, kw
+def _setup(num_devices=None, micro_batch=0, lr=1e-3, separate=False, model="resnet_md_tiny", loss_cfg=None):
+    return make_step(num_devices=num_devices, micro_batch=micro_batch, lr=lr, separate=separate, model=model,
+                     loss_cfg=loss_cfg)
 
 
 def _cycles(batch, seed=0):
@@ -236,7 +219,7 @@ def test_micro_batched_step_equals_plain_step(two):
     state, plain, net, lcfg, kw = two
     _, micro, _, _, _ = _setup(num_devices=2, micro_batch=4)
     c = _put(_cycles(2), kw)
-    (l1, t1), g1 = train_step.make_loss_and_grads(net, losses, lcfg, lcfg.pairs)(state["params"], c)
+    (l1, t1), g1 = plain_loss_and_grads(net, lcfg)(state["params"], c)
     (l2, t2), g2 = micro.loss_and_grads(state["params"], c)
     assert float(l1) == pytest.approx(float(l2), abs=1e-5)
     for k in t1:
@@ -250,10 +233,10 @@ def test_micro_batched_step_equals_plain_step(two):
     # Adam's first update is ~lr * sign(g): gradients equal to 1e-5 can still flip the sign of near-zero
     # entries, so after the update only closeness to within the step size is meaningful.
     assert _params_close(s1["params"], s2["params"], 2.5e-3)
-    bad = train_step.MicroBatchedStep(net, losses, lcfg, lcfg.pairs, *train_step.make_optimizer(tiny_config(), 10),
-                                      micro_batch=3, num_devices=2)
+    bad = MicroBatchedStep(net, lcfg, *train_step.make_optimizer(train_step.OptimizerConfig(), 10), micro_batch=3,
+                           num_devices=2)
     with pytest.raises(ValueError, match="micro_batch=3 must divide"):
-        bad._split(c)
+        bad.loss_and_grads(state["params"], c)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -453,15 +436,15 @@ def test_compilation_cache_folder_choice(tmp_path, monkeypatch):
     wd = str(tmp_path / "wd")
     cfg = default_config.get_config("local")
     assert cfg.compilation_cache_dir == "auto"
-    assert train.enable_compilation_cache(cfg, wd) == os.path.join(wd, "xla_cache")
+    assert train.enable_compilation_cache(cfg.compilation_cache_dir, wd) == os.path.join(wd, "xla_cache")
     assert calls["jax_compilation_cache_dir"] == os.path.join(wd, "xla_cache")
     calls.clear()
-    cfg.compilation_cache_dir = ""
-    assert train.enable_compilation_cache(cfg, wd) is None and not calls
-    cfg.compilation_cache_dir = str(tmp_path / "elsewhere")
-    assert train.enable_compilation_cache(cfg, wd) == str(tmp_path / "elsewhere")
+    assert train.enable_compilation_cache("", wd) is None and not calls
+    assert train.enable_compilation_cache(str(tmp_path / "elsewhere"), wd) == str(tmp_path / "elsewhere")
     calls.clear()
+    # a config file that sets a non-string is refused when the config is parsed, before anything runs
+    bad = ml_collections.ConfigDict(dict(cfg.to_dict(), compilation_cache_dir=5))
     with pytest.raises(train.ConfigError, match="compilation_cache_dir"):
-        train.enable_compilation_cache({"compilation_cache_dir": 5}, wd)
+        setup.parse(bad)
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/env/cache")
-    assert train.enable_compilation_cache(cfg, wd) == "/env/cache" and not calls
+    assert train.enable_compilation_cache("auto", wd) == "/env/cache" and not calls

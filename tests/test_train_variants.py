@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bridge_jax import losses, models, train, train_step
-from tests.train_helpers import H, W, REPO, enable_compilation_cache
+from bridge_jax import cycle, models, network, setup, train_step
+from bridge_jax.micro_batch import MicroBatchedStep
+from tests.train_helpers import H, W, REPO, enable_compilation_cache, plain_loss_and_grads
 
 CONFIG_DIR = os.path.join(REPO, "bridge_jax", "configs")
 VARIANTS = ["default", "stereo_only", "flow_only", "flow_stereo", "full1", "full2", "full3", "no_sharing", "pwcnet",
@@ -36,32 +37,31 @@ def test_config_builds_and_documents_its_command_line(name):
     mod = _load(name)
     assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge_jax.demo" in mod.__doc__)
     cfg = mod.get_config()
-    train.check_config(cfg, num_devices=1)
-    train.check_config(cfg, num_devices=2)
-    lcfg = train.loss_config_of(cfg)
-    mcfg = train.model_config_of(cfg)
+    run = setup.parse(cfg, devices=jax.devices()[:1])
+    setup.parse(cfg, devices=jax.devices()[:2])
+    lcfg, mcfg = run.loss, run.model.config
     assert mcfg["name"] in models.NAMES
     expected = {"stereo_only": ("stereo_only", "none"), "flow_only": ("flow_only", "none"),
                 "full1": ("flow_stereo", "full1"), "full2": ("flow_stereo", "full2"),
                 "full3": ("flow_stereo", "full3")}.get(name, ("flow_stereo", "none"))
     assert (lcfg.tasks, lcfg.two_warp) == expected
-    assert cfg.separate_networks == (name == "no_sharing")
+    assert run.model.separate == (name == "no_sharing")
     assert (mcfg["name"] == "pwcnet") == (name == "pwcnet")
     if name not in ("demo",):
         # paper settings: 512x256, 2 cycles, Adam 1e-4 halved at epochs 4, 7, 10, 13, 80 epochs
-        assert (cfg.height, cfg.width, cfg.global_batch, cfg.lr, tuple(cfg.lr_milestones), cfg.num_epochs) == (
-            256, 512, 2, 1e-4, (4, 7, 10, 13), 80)
+        assert (run.height, run.width, run.global_batch, run.optimizer.lr, run.optimizer.lr_milestones,
+                run.num_epochs) == (256, 512, 2, 1e-4, (4, 7, 10, 13), 80)
         assert (lcfg.lambda_sm, lcfg.lambda_lr) == (10.0, 0.5)
         local = mod.get_config("local")
-        train.check_config(local, num_devices=1)
+        setup.parse(local, devices=jax.devices()[:1])
         with pytest.raises(ValueError, match="unknown config argument"):
             mod.get_config("bogus")
 
 
 def test_lr_schedule_matches_multisteplr():
     """Hand-derived: 1e-4 for epochs 0-3, then halved at the start of epochs 4, 7, 10, 13."""
-    cfg = _load("default").get_config()
-    sched = train_step.lr_schedule(cfg, steps_per_epoch=10)
+    sched = train_step.lr_schedule(setup.parse(_load("default").get_config(), devices=jax.devices()[:1]).optimizer,
+                                   steps_per_epoch=10)
     for step, lr in [(0, 1e-4), (39, 1e-4), (40, 5e-5), (69, 5e-5), (70, 2.5e-5), (100, 1.25e-5),
                      (129, 1.25e-5), (130, 6.25e-6), (10_000, 6.25e-6)]:
         assert float(sched(jnp.int32(step))) == pytest.approx(lr, rel=1e-6), step
@@ -69,10 +69,10 @@ def test_lr_schedule_matches_multisteplr():
 
 def test_row_is_stereo_follows_pair_layout():
     pairs = (0, 1, 2, 3)
-    assert train_step.row_is_stereo(pairs, 8) == (True, False, False, True) * 2
-    assert train_step.row_is_stereo(pairs, 4, offset=6) == (False, True, True, False)
-    assert train_step.row_is_stereo((1, 2), 4) == (False,) * 4
-    assert train_step.row_is_stereo((0, 3), 4) == (True,) * 4
+    assert cycle.row_is_stereo(pairs, 8) == (True, False, False, True) * 2
+    assert cycle.row_is_stereo(pairs, 4, offset=6) == (False, True, True, False)
+    assert cycle.row_is_stereo((1, 2), 4) == (False,) * 4
+    assert cycle.row_is_stereo((0, 3), 4) == (True,) * 4
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -87,17 +87,13 @@ def _cache():
 
 
 def _one_step(cfg, batch=1, micro_batch=0, seed=0):
-    mcfg = train.model_config_of(cfg)
-    lcfg = train.loss_config_of(cfg)
-    graphdef, params = models.init(jax.random.key(0), mcfg)
-    if cfg.separate_networks:
-        params = {"stereo": params, "flow": models.init(jax.random.key(1), mcfg)[1]}
-    tx, schedule = train_step.make_optimizer(cfg, 100)
-    net = train_step.Network(models.apply, graphdef, separate=bool(cfg.separate_networks),
-                             dtype=train.DTYPES[cfg.dtype] if cfg.dtype != "float32" else None)
+    cfg.global_batch, cfg.micro_batch = batch, micro_batch
+    run = setup.parse(cfg, devices=jax.devices()[:1])
+    graphdef, params = network.init_params(jax.random.key(0), run.model.config, run.model.separate)
+    tx, schedule = train_step.make_optimizer(run.optimizer, 100)
     state = train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(2)))
     before = jax.tree.map(np.asarray, state["params"])
-    step = train_step.build_step(net, losses, lcfg, lcfg.pairs, tx, schedule, micro_batch=micro_batch)
+    step = setup.build_step(run, run.model.network(graphdef), tx, schedule)
     cycles = jnp.asarray(np.random.default_rng(seed).random((batch, 4, cfg.height, cfg.width, 3), dtype=np.float32))
     state, metrics = step(state, cycles)
     return before, state, metrics
@@ -149,16 +145,14 @@ def test_bfloat16_compute_keeps_float32_params(_cache):
 @pytest.mark.slow
 def test_no_sharing_micro_batched_equals_plain(_cache):
     """Separate stereo/flow networks with micro-batches that mix stereo and flow rows."""
-    cfg = _tiny("no_sharing")
-    mcfg = train.model_config_of(cfg)
-    lcfg = train.loss_config_of(cfg)
-    graphdef, p1 = models.init(jax.random.key(0), mcfg)
-    params = {"stereo": p1, "flow": models.init(jax.random.key(1), mcfg)[1]}
-    net = train_step.Network(models.apply, graphdef, separate=True)
-    tx, schedule = train_step.make_optimizer(cfg, 100)
+    run = setup.parse(_tiny("no_sharing"), devices=jax.devices()[:1])
+    graphdef, params = network.init_params(jax.random.key(0), run.model.config, separate=True)
+    net = run.model.network(graphdef)
+    lcfg = run.loss
+    tx, schedule = train_step.make_optimizer(run.optimizer, 100)
     cycles = jnp.asarray(np.random.default_rng(0).random((1, 4, H, W, 3), dtype=np.float32))
-    (l1, _), g1 = train_step.make_loss_and_grads(net, losses, lcfg, lcfg.pairs)(params, cycles)
-    micro = train_step.MicroBatchedStep(net, losses, lcfg, lcfg.pairs, tx, schedule, micro_batch=2)
+    (l1, _), g1 = plain_loss_and_grads(net, lcfg)(params, cycles)
+    micro = MicroBatchedStep(net, lcfg, tx, schedule, micro_batch=2)
     (l2, _), g2 = micro.loss_and_grads(params, cycles)
     assert float(l1) == pytest.approx(float(l2), abs=1e-5)
     for a, b in zip(jax.tree.leaves(g1), jax.tree.leaves(g2)):

@@ -7,13 +7,17 @@ the same cache directory and 8 fake CPU devices through the environment).
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import tempfile
 
 import jax
+from jax.sharding import NamedSharding, PartitionSpec as P
 
+from bridge_jax import losses, models, network, train_step
 from bridge_jax.configs import default
+from bridge_jax.micro_batch import MicroBatchedStep
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CACHE_DIR = os.environ.get("BRIDGE_JAX_TEST_JAX_CACHE",
@@ -81,3 +85,32 @@ def train_cli(workdir: str, *overrides: str, config: str = "bridge_jax/configs/d
             "--config.progress_bar=False", "--config.data.synthetic_num=32", "--config.data.prefetch=0"]
     return [sys.executable, "-m", "bridge_jax.train", f"--config={os.path.join(REPO, config)}",
             f"--workdir={workdir}", *base, *overrides]
+
+
+def make_step(*, num_devices=None, micro_batch=0, lr=1e-3, separate=False, model="resnet_md_tiny", loss_cfg=None,
+              dtype=None):
+    """(state, step, net, loss_cfg, shardings) of a training step built from the library's pieces: the plain jitted
+    step, or the micro-batched one with `micro_batch` rows per device; on a mesh of `num_devices` fake devices."""
+    mcfg = models.model_config(model)
+    lcfg = loss_cfg or losses.LossConfig()
+    graphdef, params = network.init_params(jax.random.key(0), mcfg, separate)
+    tx, schedule = train_step.make_optimizer(train_step.OptimizerConfig(lr=lr), 100)
+    net = network.Network(graphdef, separate=separate, dtype=dtype)
+    state = train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(2)))
+    kw = {}
+    if num_devices is not None:
+        mesh = jax.make_mesh((num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,),
+                             devices=jax.devices()[:num_devices])
+        rep = NamedSharding(mesh, P())
+        kw = dict(state_sharding=jax.tree.map(lambda _: rep, state), batch_sharding=NamedSharding(mesh, P("data")))
+        state = jax.device_put(state, kw["state_sharding"])
+    if micro_batch:
+        step = MicroBatchedStep(net, lcfg, tx, schedule, micro_batch=micro_batch, num_devices=num_devices or 1, **kw)
+    else:
+        step = train_step.make_train_step(net, lcfg, tx, schedule, **kw)
+    return state, step, net, lcfg, kw
+
+
+def plain_loss_and_grads(net, loss_cfg):
+    """The whole-batch `(params, cycles) -> ((loss, terms), grads)` of the plain step, jitted."""
+    return jax.jit(functools.partial(train_step.loss_and_grads, net=net, loss_cfg=loss_cfg))

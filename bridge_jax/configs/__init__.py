@@ -1,0 +1,77 @@
+"""Training configs: `default.py` (the paper's settings), one file per paper variant, `demo.py` (the README's main
+job). Each module has `get_config(arg=None)` returning an `ml_collections.ConfigDict`.
+
+    configs.load("full2:local")                 # by name (any directory), or a path "my/config.py[:arg]"
+    configs.override(config, ["loss.two_warp=full2", "height=128"])
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import importlib.util
+import os
+from typing import Sequence
+
+import ml_collections
+
+CONFIG_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+def names() -> list[str]:
+    """The configs shipped in the package."""
+    return sorted(f[:-3] for f in os.listdir(CONFIG_DIR) if f.endswith(".py") and not f.startswith("_"))
+
+
+def load(spec: str) -> ml_collections.ConfigDict:
+    """A config by name (`default`, `full2:local`, see `names()`) or by path (`dir/file.py[:arg]`).
+
+    Raises ValueError naming the config (unknown name, missing file, or an argument its get_config refuses).
+    """
+    name, _, arg = spec.partition(":")
+    if name.endswith(".py") or os.sep in name:
+        if not os.path.isfile(name):
+            raise ValueError(f"--config {spec}: no such config file {name!r}")
+        mod_spec = importlib.util.spec_from_file_location("bridge_jax_user_config", name)
+        module = importlib.util.module_from_spec(mod_spec)
+        mod_spec.loader.exec_module(module)
+    elif name in names():
+        module = importlib.import_module(f"bridge_jax.configs.{name}")
+    else:
+        raise ValueError(f"--config {spec}: unknown config {name!r}; expected one of {names()} or a .py path")
+    try:
+        return module.get_config(arg or None)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"--config {spec}: {e}") from e
+
+
+def _literal(text: str):
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def override(config: ml_collections.ConfigDict, items: Sequence[str]) -> ml_collections.ConfigDict:
+    """Sets `KEY=VALUE` items (dotted keys, Python literals; text where the field is a string) in place.
+
+    Raises ValueError naming the item: not KEY=VALUE, no such field, or a value of the wrong type.
+    """
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq:
+            raise ValueError(f"{item!r}: expected KEY=VALUE (e.g. loss.two_warp=full2)")
+        *path, last = key.split(".")
+        node = config
+        for part in path:
+            if not isinstance(node, ml_collections.ConfigDict) or part not in node:
+                raise ValueError(f"{item!r}: config has no field {key!r}")
+            node = node[part]
+        if not isinstance(node, ml_collections.ConfigDict) or last not in node:
+            raise ValueError(f"{item!r}: config has no field {key!r}")
+        value = text if isinstance(node[last], str) else _literal(text)
+        try:
+            node[last] = value
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{item!r}: {e}") from e
+    return config

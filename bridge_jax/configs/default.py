@@ -19,6 +19,8 @@ import dataclasses
 import ml_collections
 
 from bridge_jax import losses, models
+from bridge_jax.data.pipeline import DataConfig
+from bridge_jax.train_step import OptimizerConfig
 
 # Upstream's KITTI-split list has 28,968 cycles; at 2 cycles a step that is one epoch. The synthetic video
 # is endless, so this only fixes the epoch length the learning-rate schedule counts in.
@@ -35,7 +37,6 @@ def model_section(name: str) -> ml_collections.ConfigDict:
 def get_config(arg=None):
     """Returns the paper's default training config (see module docstring)."""
     c = ml_collections.ConfigDict()
-    c.variant = "flow_stereo"
 
     # Network. `separate_networks` = the paper's "without sharing weights" ablation.
     # Every key of models.model_config (so any of them can be overridden from the command line).
@@ -47,30 +48,24 @@ def get_config(arg=None):
     # difference is a switch there). Type 0 = no 2-warp term = the "flow+stereo" model.
     c.loss = ml_collections.ConfigDict(dataclasses.asdict(losses.LossConfig()))
 
-    # Data. The default source is the built-in synthetic stereo video (procedural, exact ground truth).
-    # Keys of data.pipeline.make_train_dataset; data_dir/split are for kitti_raw | folder | tfds.
-    c.data = ml_collections.ConfigDict(dict(
-        source="synthetic", data_dir="", split="", augment=True, num_workers=0, prefetch=2, read_threads=1,
-        worker_buffer_size=2, max_skip=100, synthetic_num=100_000))
+    # Data: every field of data.pipeline.DataConfig. The default source is the built-in synthetic stereo video
+    # (procedural, exact ground truth); data_dir/split are for kitti_raw | folder | tfds.
+    c.data = ml_collections.ConfigDict(dataclasses.asdict(DataConfig()))
     c.height = 256
     c.width = 512
     c.global_batch = 2  # cycles per step (all devices/processes together)
 
-    # Optimisation.
-    c.lr = 1e-4
-    c.lr_milestones = (4, 7, 10, 13)  # epochs at whose start the lr is multiplied by lr_decay
-    c.lr_decay = 0.5
-    c.adam_b1 = 0.9
-    c.adam_b2 = 0.999
-    c.adam_eps = 1e-8
+    # Optimisation: every field of train_step.OptimizerConfig (Adam lr, adam_b1/b2/eps; lr_milestones = epochs at
+    # whose start the lr is multiplied by lr_decay), at the top level.
+    c.update(dataclasses.asdict(OptimizerConfig()))
     c.num_epochs = 80
     c.steps_per_epoch = KITTI_SPLIT_CYCLES // 2  # -1: from the data source's size
     c.num_train_steps = -1  # -1: num_epochs * steps_per_epoch
     c.seed = 0
 
-    # Micro-batching (maps-first): network pair-forwards per device per call; 0 = whole batch in one jitted
-    # step (best on GPU/TPU); -1 = auto: 2 on CPU, where a Python loop of small jitted calls is faster and
-    # much leaner than one big jit (and lax.scan is very slow), 0 elsewhere.
+    # Micro-batching (bridge_jax.micro_batch): network pair-forwards per device per call; 0 = whole batch in
+    # one jitted step (best on GPU/TPU); -1 = auto: 2 on CPU, where a Python loop of small jitted calls is
+    # faster and much leaner than one big jit, 0 elsewhere.
     c.micro_batch = -1
 
     c.init_from = ""  # params-only init: a params dir (convert/export) or a training workdir / step dir
@@ -121,9 +116,8 @@ def local(c):
 
 
 def variant(name, arg, **loss_overrides):
-    """The default config with a different variant name and loss settings (used by the variant files)."""
+    """The default config with other loss settings (used by the variant files; `name` is the file's name)."""
     c = get_config(None)
-    c.variant = name
     c.loss.update(loss_overrides)
     if arg == "local":
         local(c)

@@ -11,27 +11,23 @@ experiments/synthetic.md for what a run reaches.
   python -m bridge_jax.train --config=bridge_jax/configs/demo.py --workdir=work/demo   # training only
 """
 
-import ml_collections
-
-from bridge_jax import models
 from bridge_jax.configs import default
 
 
 def get_config(arg=None):
     c = default.get_config(None)
-    c.variant = "demo"
     c.model = default.model_section("resnet_md_tiny")
     c.model.head_init = "zeros"
-    # 64x128: 4x fewer pixels than 128x256 make a step ~4x faster (0.2 s vs 0.9 s on 2 cores; the loss, not
-    # the tiny network, dominates), i.e. ~4x more steps in the same 10 minutes.
+    # 64x128: 4x fewer pixels than 128x256 make a step about 4x faster (the loss, not the tiny network,
+    # dominates it), so about 4x more steps fit in the same minutes.
     c.height, c.width = 64, 128
     c.global_batch = 2
     c.micro_batch = 0  # a tiny model: one jitted step beats many small calls
     c.lr = 1e-3
     c.num_train_steps = 2500
     # The paper's step schedule, compressed: 250-step "epochs", so the lr halves at the starts of epochs 4 and 7
-    # (steps 1000 and 1750). Against a constant 1e-3, the validation flow EPE then falls steadily over the last
-    # third (0.92, 0.90, 0.88, 0.87x zero motion at steps 1750-2500, instead of jumping between 0.84 and 1.12x).
+    # (steps 1000 and 1750); against a constant 1e-3 the validation flow EPE then falls steadily over the last
+    # third instead of jumping (experiments/synthetic.md).
     c.steps_per_epoch = 250
     c.data.synthetic_num = 20_000
     c.data.num_workers = 0

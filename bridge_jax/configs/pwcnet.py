@@ -5,9 +5,6 @@ Upstream forces a width of 832 for PWC-Net; we keep 512x256 by default (any mult
     python -m bridge_jax.train --config=bridge_jax/configs/pwcnet.py --workdir=work/pwcnet
 """
 
-import ml_collections
-
-from bridge_jax import models
 from bridge_jax.configs import default
 
 

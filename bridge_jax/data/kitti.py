@@ -11,8 +11,9 @@ Layouts:
   * KITTI 2015 (`data_scene_flow/training`): image_2/NNNNNN_10.png|_11.png (left t, t+1), image_3/ (right),
     disp_occ_0/, disp_noc_0/, disp_occ_1/, flow_occ/, flow_noc/ (NNNNNN_10.png), calib_cam_to_cam/NNNNNN.txt.
     The synthetic writer (`bridge_jax.data.synthetic`) uses the same layout.
-  * KITTI 2012 (`data_stereo_flow/training`): colored_0/colored_1 (or grayscale image_0/image_1, replicated to
-    RGB), disp_occ/, disp_noc/, flow_occ/, flow_noc/, calib/NNNNNN.txt (P0..P3).
+  * KITTI 2012 (`data_stereo_flow/training`): grayscale image_0/image_1 (replicated to RGB; the paper evaluates
+    on them), disp_occ/, disp_noc/, flow_occ/, flow_noc/, calib/NNNNNN.txt (P0..P3).
+  The readers of these two benchmark layouts are in `bridge_jax.eval.datasets`.
   * KITTI raw: ROOT/<date>/calib_cam_to_cam.txt, calib_velo_to_cam.txt and
     ROOT/<date>/<date>_drive_<NNNN>_sync/{image_02,image_03}/data/<frame:010d>.png|.jpg, velodyne_points/data/*.bin.
 
@@ -24,11 +25,11 @@ from __future__ import annotations
 import logging
 import os
 import re
-import tempfile
-from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
+
+from bridge_jax import files
 
 cv2.setNumThreads(1)
 log = logging.getLogger(__name__)
@@ -37,15 +38,6 @@ SPLITS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "splits")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 RAW_LAYOUT = ("KITTI raw layout: ROOT/<date>/<date>_drive_<NNNN>_sync/image_02/data/*.png|jpg and "
               "image_03/data/* (calibration in ROOT/<date>/calib_cam_to_cam.txt)")
-
-
-def _get_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _get_umask()
 
 
 class CorruptImageError(ValueError):
@@ -59,21 +51,6 @@ class CorruptImageError(ValueError):
 # ----------------------------------------------------------------------------------------------------------
 # Images
 # ----------------------------------------------------------------------------------------------------------
-
-def _atomic_write(path: str, data: bytes) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=d)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.chmod(tmp, 0o666 & ~_UMASK)      # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
 
 def _encode(ext: str, array: np.ndarray, name: str) -> bytes:
     ok, buf = cv2.imencode(ext, array)
@@ -131,7 +108,7 @@ def write_image(path: str, rgb: np.ndarray) -> None:
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"write_image({path!r}): expected uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
-    _atomic_write(path, _encode(os.path.splitext(path)[1] or ".png", rgb[..., ::-1].copy(), path))
+    files.write_bytes(path, _encode(os.path.splitext(path)[1] or ".png", rgb[..., ::-1].copy(), path))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -176,7 +153,7 @@ def read_flow_png(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 def write_flow_png(path: str, flow: np.ndarray, valid: np.ndarray | None = None) -> None:
     """Writes a KITTI flow PNG atomically (see `encode_flow_png`)."""
-    _atomic_write(path, encode_flow_png(flow, valid))
+    files.write_bytes(path, encode_flow_png(flow, valid))
 
 
 def encode_disp_png(disp: np.ndarray, valid: np.ndarray | None = None) -> bytes:
@@ -207,7 +184,7 @@ def read_disp_png(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 def write_disp_png(path: str, disp: np.ndarray, valid: np.ndarray | None = None) -> None:
     """Writes a KITTI disparity PNG atomically (see `encode_disp_png`)."""
-    _atomic_write(path, encode_disp_png(disp, valid))
+    files.write_bytes(path, encode_disp_png(disp, valid))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -252,83 +229,6 @@ def focal_baseline(calib: dict, cams: tuple[int, int] = (2, 3), path: str = "cal
 
 def raw_calib_path(date_dir: str) -> str:
     return os.path.join(date_dir, "calib_cam_to_cam.txt")
-
-
-# ----------------------------------------------------------------------------------------------------------
-# KITTI 2012 / 2015 stereo + flow benchmarks
-# ----------------------------------------------------------------------------------------------------------
-
-def _training_dir(root: str, markers: Sequence[str]) -> str:
-    for cand in (root, os.path.join(root, "training")):
-        if any(os.path.isdir(os.path.join(cand, m)) for m in markers):
-            return cand
-    raise ValueError(f"{root!r} is not a KITTI benchmark folder: expected one of {list(markers)} in it or in "
-                     f"its training/ subfolder")
-
-
-def stereo_flow_samples(root: str, year: int = 2015) -> list[dict]:
-    """The samples of a KITTI 2015 / 2012 (or synthetic) training folder, sorted by id.
-
-    Each dict: "id" ("000123"), "left_t", "right_t", "left_t1", "right_t1" (image paths), GT paths or None:
-    "disp_occ", "disp_noc", "disp_occ_1", "disp_noc_1" (2015 only), "flow_occ", "flow_noc", and "calib",
-    "calib_cams" ((2, 3) for colour, (0, 1) for 2012 grayscale), "grayscale" (bool).
-    """
-    if year == 2015:
-        tdir = _training_dir(root, ["image_2"])
-        left, right, gray = "image_2", "image_3", False
-        gt = {"disp_occ": "disp_occ_0", "disp_noc": "disp_noc_0", "disp_occ_1": "disp_occ_1",
-              "disp_noc_1": "disp_noc_1", "flow_occ": "flow_occ", "flow_noc": "flow_noc"}
-        calib_dir, calib_cams = "calib_cam_to_cam", (2, 3)
-    elif year == 2012:
-        tdir = _training_dir(root, ["colored_0", "image_0"])
-        if os.path.isdir(os.path.join(tdir, "colored_0")):
-            left, right, gray, calib_cams = "colored_0", "colored_1", False, (2, 3)
-        else:
-            left, right, gray, calib_cams = "image_0", "image_1", True, (0, 1)
-        gt = {"disp_occ": "disp_occ", "disp_noc": "disp_noc", "flow_occ": "flow_occ", "flow_noc": "flow_noc"}
-        calib_dir = "calib"
-    else:
-        raise ValueError(f"KITTI year must be 2012 or 2015, got {year}")
-    names = sorted(f[:-7] for f in os.listdir(os.path.join(tdir, left)) if f.endswith("_10.png"))
-    if not names:
-        raise ValueError(f"no *_10.png images in {os.path.join(tdir, left)!r}")
-    out = []
-    for n in names:
-        s = {"id": n, "left_t": os.path.join(tdir, left, f"{n}_10.png"),
-             "right_t": os.path.join(tdir, right, f"{n}_10.png"),
-             "left_t1": os.path.join(tdir, left, f"{n}_11.png"),
-             "right_t1": os.path.join(tdir, right, f"{n}_11.png"), "grayscale": gray, "calib_cams": calib_cams}
-        for key, folder in gt.items():
-            p = os.path.join(tdir, folder, f"{n}_10.png")
-            s[key] = p if os.path.exists(p) else None
-        c = os.path.join(tdir, calib_dir, f"{n}.txt")
-        s["calib"] = c if os.path.exists(c) else None
-        out.append(s)
-    return out
-
-
-def load_stereo_flow_sample(sample: dict) -> dict:
-    """Loads one `stereo_flow_samples` entry: "cycle" uint8 (4, H, W, 3) (grayscale replicated), "id", and
-    for each present GT: "disp_occ"/"disp_noc"/"disp_occ_1"/"disp_noc_1" → (disp, valid), "flow_occ"/"flow_noc" →
-    (flow, valid); "focal"/"baseline" when a calibration file exists."""
-    frames = [read_image(sample[k]) for k in ("left_t", "right_t", "left_t1", "right_t1")]
-    if len({f.shape for f in frames}) != 1:
-        raise CorruptImageError(sample["left_t"], f"frames of sample {sample['id']} differ in size")
-    out = {"id": sample["id"], "cycle": np.stack(frames)}
-    for key in ("disp_occ", "disp_noc", "disp_occ_1", "disp_noc_1"):
-        if sample.get(key):
-            out[key] = read_disp_png(sample[key])
-    for key in ("flow_occ", "flow_noc"):
-        if sample.get(key):
-            out[key] = read_flow_png(sample[key])
-    if sample.get("calib"):
-        out["focal"], out["baseline"] = focal_baseline(read_calib_file(sample["calib"]), sample["calib_cams"],
-                                                       sample["calib"])
-    return out
-
-
-# Focal length by image width used by the KITTI-split stereo evaluation (REFERENCE.md §1d, baseline 0.54 m).
-KITTI_FOCAL_BY_WIDTH = {1242: 721.5377, 1241: 718.856, 1224: 707.0493, 1238: 718.3351}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -548,8 +448,3 @@ def raw_focal_baseline(calib_dir: str) -> tuple[float, float]:
     """(focal px, baseline m) of cameras 2/3 from <date>/calib_cam_to_cam.txt."""
     path = raw_calib_path(calib_dir)
     return focal_baseline(read_calib_file(path), (2, 3), path)
-
-
-def iter_paths(records: Iterable[dict]):
-    for r in records:
-        yield from r["paths"]

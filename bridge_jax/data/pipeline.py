@@ -1,6 +1,6 @@
 """grain input pipeline: cycle source → shuffle → shard → decode → augment → resize → batch → workers.
 
-    make_train_dataset(data_cfg, global_batch=..., seed=..., height=256, width=512)
+    make_train_dataset(DataConfig(...), global_batch=..., seed=..., height=256, width=512)
       MapDataset.range(N) ─ shuffle(seed) ─ [:N - N % P] ─ [p::P] ─ repeat(num_epochs)
       ─ map(load: decode the cycle, or skip a corrupt one and take the next valid one)
       ─ random_map(augment, same draw for the 4 frames) ─ map(resize to H × W)
@@ -33,16 +33,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import tempfile
 import threading
-import time
-from typing import Any, Mapping
+from typing import Optional
 
 import cv2
 import grain
+import jax
 import numpy as np
+from absl import flags
+from jax.sharding import NamedSharding, PartitionSpec
 
-from bridge_jax.data import kitti
+from bridge_jax.data import folders, kitti, synthetic
 
 cv2.setNumThreads(1)
 log = logging.getLogger(__name__)
@@ -105,7 +106,6 @@ class SyntheticSource:
     """The procedural synthetic data, rendered on the fly (never corrupt)."""
 
     def __init__(self, num: int, seed: int, height: int, width: int, **render_kw):
-        from bridge_jax.data import synthetic
         self.inner = synthetic.SyntheticCycles(num, seed, height, width, **render_kw)
         self.root = f"<synthetic seed={seed}>"
 
@@ -123,6 +123,7 @@ class TfdsCycleSource:
     """Cycles from the `kitti_cycles` TFDS builder (ArrayRecord), read with tfds.data_source (no TensorFlow)."""
 
     def __init__(self, data_dir: str, config: str = "all", split: str = "train"):
+        # imported here: tensorflow_datasets takes seconds to import and only this source needs it
         from bridge_jax.data.tfds_kitti_cycles import open_data_source
         self.data_dir, self.config, self.split = data_dir, config, split
         self.source = open_data_source(data_dir, config, split)
@@ -139,41 +140,51 @@ class TfdsCycleSource:
         return self.load(index)
 
 
-def _cfg(data_cfg: Any, key: str, default: Any = None) -> Any:
-    if data_cfg is None:
-        return default
-    if isinstance(data_cfg, Mapping):
-        return data_cfg.get(key, default)
-    getter = getattr(data_cfg, "get", None)
-    if getter is not None:
-        return getter(key, default)
-    return getattr(data_cfg, key, default)
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """The training data (the `data` section of a training config).
 
-
-def make_source(data_cfg: Any, *, height: int = 256, width: int = 512, seed: int = 0):
-    """The cycle source named by `data_cfg.source` ("synthetic" | "kitti_raw" | "folder" | "tfds").
-
-    Keys: data_dir, split ("all" | "kitti" | "eigen" | list file for kitti_raw; TFDS config for tfds),
-    synthetic_num (100000), synthetic_seed (= seed), synthetic_height/width (= working size).
+    source: "synthetic" (the built-in procedural stereo video, rendered on the fly at the working size),
+      "kitti_raw" (a KITTI raw root, see `kitti.RAW_LAYOUT`), "folder" (your own stereo video, see
+      `folders.EXPECTED_LAYOUT`) or "tfds" (the `kitti_cycles` TFDS builder's ArrayRecord files).
+    data_dir: the folder of kitti_raw | folder | tfds.
+    split: kitti_raw: "all" | "kitti" | "eigen" | a list file; tfds: the builder config ("all").
+    augment: the paper's augmentation (see the module docstring).
+    num_workers: grain worker processes (0 = decode in the training process).
+    prefetch, read_threads, worker_buffer_size: grain read options.
+    max_skip: consecutive unreadable cycles tolerated before the data folder is reported as broken.
+    synthetic_num: cycles of the synthetic source per epoch (it is endless; this fixes the shuffle period).
+    num_epochs: passes over the source (None = forever, the trainer's choice).
     """
-    kind = _cfg(data_cfg, "source", "synthetic")
-    data_dir = _cfg(data_cfg, "data_dir", None)
-    split = _cfg(data_cfg, "split", None)
-    if kind == "synthetic":
-        return SyntheticSource(int(_cfg(data_cfg, "synthetic_num", DEFAULT_SYNTHETIC_NUM)),
-                               int(_cfg(data_cfg, "synthetic_seed", seed)),
-                               int(_cfg(data_cfg, "synthetic_height", None) or height),
-                               int(_cfg(data_cfg, "synthetic_width", None) or width))
-    if kind in ("kitti_raw", "folder", "tfds") and not data_dir:
-        raise ValueError(f"data.source={kind!r} needs data.data_dir")
-    if kind == "kitti_raw":
-        return FileCycleSource(kitti.raw_cycles(data_dir, split or "all"), data_dir)
-    if kind == "folder":
-        from bridge_jax.data import folders
-        return FileCycleSource(folders.folder_cycles(data_dir), data_dir)
-    if kind == "tfds":
-        return TfdsCycleSource(data_dir, split or "all")
-    raise ValueError(f"data.source must be one of {SOURCES}, got {kind!r}")
+
+    source: str = "synthetic"
+    data_dir: str = ""
+    split: str = ""
+    augment: bool = True
+    num_workers: int = 0
+    prefetch: int = 2
+    read_threads: int = 1
+    worker_buffer_size: int = 2
+    max_skip: int = 100
+    synthetic_num: int = DEFAULT_SYNTHETIC_NUM
+    num_epochs: Optional[int] = None
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise ValueError(f"data.source must be one of {SOURCES}, got {self.source!r}")
+        if self.source != "synthetic" and not self.data_dir:
+            raise ValueError(f"data.source={self.source!r} needs data.data_dir")
+
+
+def make_source(data: DataConfig, *, height: int = 256, width: int = 512, seed: int = 0):
+    """The cycle source named by `data.source` (len + load(i) -> {"cycle": uint8 (4, H, W, 3), "id"})."""
+    if data.source == "synthetic":
+        return SyntheticSource(int(data.synthetic_num), int(seed), int(height), int(width))
+    if data.source == "kitti_raw":
+        return FileCycleSource(kitti.raw_cycles(data.data_dir, data.split or "all"), data.data_dir)
+    if data.source == "folder":
+        return FileCycleSource(folders.folder_cycles(data.data_dir), data.data_dir)
+    return TfdsCycleSource(data.data_dir, data.split or "all")
 
 
 class LoadCycle:
@@ -261,11 +272,6 @@ def apply_augment_uint8(cycle: np.ndarray, params: AugmentParams) -> np.ndarray:
     return cv2.LUT(np.ascontiguousarray(cycle).reshape(n * h, w, c), lut).reshape(n, h, w, c)
 
 
-def to_float(cycle: np.ndarray) -> np.ndarray:
-    """uint8 (4, H, W, 3) → float32 [0, 1] (no augmentation)."""
-    return apply_augment(cycle, AugmentParams())
-
-
 def resize_frames(frames: np.ndarray, height: int, width: int) -> np.ndarray:
     """(N, H, W, C) float32 or uint8 → (N, height, width, C), same dtype; INTER_AREA when shrinking,
     INTER_LINEAR otherwise."""
@@ -300,25 +306,23 @@ class _Resize(grain.transforms.Map):
 # The training dataset
 # ----------------------------------------------------------------------------------------------------------
 
-def make_train_dataset(data_cfg: Any, *, global_batch: int, seed: int, height: int = 256, width: int = 512,
+def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height: int = 256, width: int = 512,
                        process_index: int | None = None, process_count: int | None = None,
                        source=None) -> grain.IterDataset:
     """The training input pipeline (see the module docstring).
 
     Args:
-      data_cfg: mapping / ConfigDict: source, data_dir, split, augment (True), num_workers (0),
-        num_epochs (None = forever), max_skip (100), worker_buffer_size (2), synthetic_num, ...
+      data: which data and how to read it.
       global_batch: cycles per step over all processes (divisible by process_count).
       seed: shuffle and augmentation seed.
       height, width: working size of the yielded cycles.
       process_index, process_count: this host's shard (default jax.process_index() / jax.process_count()).
-      source: optional ready source object (len + load) instead of building one from data_cfg.
+      source: optional ready source object (len + load) instead of building one from `data`.
     Returns:
       grain IterDataset; iter(ds) yields {"cycle": float32 (global_batch // P, 4, height, width, 3)} and has
       get_state() / set_state().
     """
     if process_index is None or process_count is None:
-        import jax
         process_index = jax.process_index() if process_index is None else process_index
         process_count = jax.process_count() if process_count is None else process_count
     if global_batch <= 0 or global_batch % process_count:
@@ -327,161 +331,37 @@ def make_train_dataset(data_cfg: Any, *, global_batch: int, seed: int, height: i
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     local_batch = global_batch // process_count
-    src = source if source is not None else make_source(data_cfg, height=height, width=width, seed=seed)
+    src = source if source is not None else make_source(data, height=height, width=width, seed=seed)
     n = len(src)
     usable = n - n % process_count
     if usable // process_count < 1:
         raise ValueError(f"data source {getattr(src, 'root', src)!r} has {n} cycles: fewer than the "
                          f"{process_count} processes")
-    num_epochs = _cfg(data_cfg, "num_epochs", None)
     ds = grain.MapDataset.range(n).shuffle(seed=seed)
     if usable != n:
         ds = ds[:usable]
     ds = ds[process_index::process_count]
-    ds = ds.repeat(None if num_epochs is None else int(num_epochs))
-    ds = ds.map(LoadCycle(src, int(_cfg(data_cfg, "max_skip", 100))))
-    ds = ds.random_map(_Augment(bool(_cfg(data_cfg, "augment", True))),
-                       seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
+    ds = ds.repeat(None if data.num_epochs is None else int(data.num_epochs))
+    ds = ds.map(LoadCycle(src, int(data.max_skip)))
+    ds = ds.random_map(_Augment(bool(data.augment)), seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
     ds = ds.map(_Resize(height, width))
-    ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(_cfg(data_cfg, "read_threads", 0)) or 1,
-                                              prefetch_buffer_size=int(_cfg(data_cfg, "prefetch", 2))))
+    ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(data.read_threads) or 1,
+                                              prefetch_buffer_size=int(data.prefetch)))
     ds = ds.batch(local_batch, drop_remainder=True)
-    workers = int(_cfg(data_cfg, "num_workers", 0))
+    workers = int(data.num_workers)
     if workers > 0:
         # grain's worker processes read absl flags; outside absl.app.run (tests, notebooks, library use) they
         # are unparsed, so mark them parsed with their defaults (argv is left alone).
-        from absl import flags
         if not flags.FLAGS.is_parsed():
             flags.FLAGS.mark_as_parsed()
-        ds = ds.mp_prefetch(grain.MultiprocessingOptions(
-            num_workers=workers, per_worker_buffer_size=int(_cfg(data_cfg, "worker_buffer_size", 2))))
+        ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=workers,
+                                                         per_worker_buffer_size=int(data.worker_buffer_size)))
     return ds
 
 
 def shard_batch(batch: dict, mesh, axis_names=None):
     """Places this process's batch (leading dim = local batch) onto `mesh`, sharded over `axis_names` (default:
     all mesh axes) along the batch dimension; returns global jax.Arrays (leading dim = global batch)."""
-    import jax
-    from jax.sharding import NamedSharding, PartitionSpec
     axes = tuple(mesh.axis_names) if axis_names is None else axis_names
     sharding = NamedSharding(mesh, PartitionSpec(axes))
     return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch)
-
-
-def bench_pipeline(data_cfg: Any, *, num_workers: int = 0, batch: int = 2, height: int = 256, width: int = 512,
-                   num_batches: int = 20, warmup: int = 2, seed: int = 0) -> dict:
-    """Cycles per second delivered by make_train_dataset (decode + augment + resize + batch) in this process.
-
-    Returns {"cycles_per_s", "seconds", "cycles", "num_workers", "startup_s", "main_cpu_ms_per_cycle"};
-    startup (warm-up batches, worker spawn) is excluded from the rate. With num_workers=0 the main process does
-    all the work, so main_cpu_ms_per_cycle is the pipeline's CPU cost per cycle (independent of machine load).
-    """
-    cfg = dict(data_cfg) if isinstance(data_cfg, Mapping) else dict(data_cfg.items())
-    cfg["num_workers"] = num_workers
-    ds = make_train_dataset(cfg, global_batch=batch, seed=seed, height=height, width=width, process_index=0,
-                            process_count=1)
-    it = iter(ds)
-    t0 = time.perf_counter()
-    for _ in range(warmup):
-        next(it)
-    t1, c1 = time.perf_counter(), time.process_time()
-    for _ in range(num_batches):
-        next(it)
-    t2, c2 = time.perf_counter(), time.process_time()
-    close = getattr(it, "close", None)
-    if close:
-        close()
-    return {"cycles_per_s": num_batches * batch / (t2 - t1), "seconds": t2 - t1, "cycles": num_batches * batch,
-            "num_workers": num_workers, "startup_s": t1 - t0,
-            "main_cpu_ms_per_cycle": 1000.0 * (c2 - c1) / (num_batches * batch)}
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Benchmark: python -m bridge_jax.data.pipeline --out experiments/results/data_bench.md
-# ----------------------------------------------------------------------------------------------------------
-
-def make_kitti_sized_raw(root: str, num_frames: int = 9, height: int = 375, width: int = 1242, seed: int = 0) -> str:
-    """Writes a KITTI-raw-layout drive of synthetic PNG frames (default 1242×375, KITTI's size) for benchmarks."""
-    from bridge_jax.data import synthetic
-    drive = os.path.join(root, "2011_09_26", "2011_09_26_drive_0001_sync")
-    for k in range(num_frames):
-        s = synthetic.render_sample(synthetic.sample_seed(seed, k), height, width)
-        for cam, frame in (("image_02", 0), ("image_03", 1)):
-            kitti.write_image(os.path.join(drive, cam, "data", f"{k:010d}.png"), s["cycle"][frame])
-    return root
-
-
-def _bench_main(argv=None) -> int:
-    import argparse
-    import datetime
-    import platform
-    import subprocess
-
-    ap = argparse.ArgumentParser(prog="python -m bridge_jax.data.pipeline",
-                                 description="Benchmark the input pipeline (cycles/s at the working size).")
-    ap.add_argument("--out", default=None, help="markdown file to write (default: print only)")
-    ap.add_argument("--workers", default="0,1,2")
-    ap.add_argument("--batches", type=int, default=10)
-    ap.add_argument("--batch", type=int, default=2)
-    ap.add_argument("--height", type=int, default=256)
-    ap.add_argument("--width", type=int, default=512)
-    ap.add_argument("--tmp", default=None, help="folder for the KITTI-sized PNGs (default: a temp dir)")
-    args = ap.parse_args(argv)
-
-    def sh(cmd):
-        try:
-            return subprocess.run(cmd, capture_output=True, text=True, timeout=30).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return "n/a"
-
-    uptime_before = sh(["uptime"])
-    workers = [int(w) for w in args.workers.split(",")]
-    tmp = args.tmp or tempfile.mkdtemp(prefix="bridge_data_bench-")
-    if not kitti.find_raw_drives(tmp):
-        make_kitti_sized_raw(tmp)
-    png_bytes = os.path.getsize(os.path.join(tmp, "2011_09_26", "2011_09_26_drive_0001_sync", "image_02", "data",
-                                             "0000000000.png"))
-    rows = []
-    for name, cfg in (("KITTI-sized PNG files (1242×375), kitti_raw source", {"source": "kitti_raw",
-                                                                              "data_dir": tmp}),
-                      ("synthetic, rendered on the fly at the working size", {"source": "synthetic"})):
-        for w in workers:
-            r = bench_pipeline(cfg, num_workers=w, batch=args.batch, height=args.height, width=args.width,
-                               num_batches=args.batches)
-            rows.append((name, w, r))
-            print(f"{name}: workers={w}: {r['cycles_per_s']:.1f} cycles/s, main-process CPU "
-                  f"{r['main_cpu_ms_per_cycle']:.0f} ms/cycle (startup {r['startup_s']:.1f} s)", flush=True)
-    if args.out:
-        lscpu = "\n".join(l for l in sh(["lscpu"]).splitlines()
-                          if l.split(":")[0].strip() in ("Architecture", "CPU(s)", "Model name", "Thread(s) per core",
-                                                         "Core(s) per socket"))
-        lines = ["# Input pipeline throughput", "",
-                 f"Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M UTC}; "
-                 f"python {platform.python_version()}, numpy {np.__version__}, opencv {cv2.__version__}, "
-                 f"grain 0.2.x.", "",
-                 "Machine (lscpu):", "```", lscpu, "```",
-                 f"Load before/after (uptime): `{uptime_before}` / `{sh(['uptime'])}` — the 2 cores were shared "
-                 "with other jobs, so these are lower bounds.", "",
-                 f"Command: `python -m bridge_jax.data.pipeline --out {args.out}` (batch {args.batch}, "
-                 f"{args.batches} timed batches after 2 warm-up batches; worker start-up excluded).",
-                 f"Working size {args.width}×{args.height}; pipeline = decode → augment (paper, p=0.5 each) → "
-                 f"resize → batch. KITTI-sized frames: synthetic 1242×375 PNGs (≈{png_bytes / 1e3:.0f} kB "
-                 "each).", "",
-                 "| source | workers | cycles/s (wall) | main-process CPU ms / cycle | start-up s |",
-                 "|---|---|---|---|---|"]
-        lines += [f"| {n} | {w} | {r['cycles_per_s']:.1f} | {r['main_cpu_ms_per_cycle']:.0f} | "
-                  f"{r['startup_s']:.1f} |" for n, w, r in rows]
-        lines += ["", "With 0 workers the CPU ms / cycle is the whole pipeline's cost on one core; 1000 / it is the "
-                  "load-free single-core rate, about twice that the 2-worker rate on 2 idle cores."]
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out + ".tmp", "w") as fh:
-            fh.write("\n".join(lines) + "\n")
-        os.replace(args.out + ".tmp", args.out)
-    return 0
-
-
-if __name__ == "__main__":
-    # Run through the importable module so that grain worker processes unpickle its classes by reference.
-    import sys
-    from bridge_jax.data import pipeline as _pipeline
-    sys.exit(_pipeline._bench_main())

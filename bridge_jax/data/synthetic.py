@@ -42,13 +42,14 @@ import functools
 import json
 import math
 import os
-import shutil
 import sys
-import tempfile
 from typing import Any
 
 import cv2
 import numpy as np
+
+from bridge_jax import files
+from bridge_jax.data import kitti
 
 cv2.setNumThreads(1)
 
@@ -608,19 +609,9 @@ def write_kitti_layout(out_dir: str, num: int, seed: int = 0, height: int = 256,
         synthetic.json                                  generator settings and per-sample seeds
     The folder appears complete or not at all (written to a temporary sibling, then renamed).
     """
-    from bridge_jax.data import kitti  # local import: kitti imports nothing from here
-
     if num <= 0:
         raise ValueError(f"write_kitti_layout: --num must be > 0, got {num}")
-    out_dir = os.path.abspath(out_dir)
-    if os.path.exists(out_dir) and (not os.path.isdir(out_dir) or os.listdir(out_dir)) and not overwrite:
-        raise FileExistsError(f"write_kitti_layout: output folder {out_dir!r} exists and is not empty "
-                              "(pass overwrite=True / --overwrite to replace it)")
-    parent = os.path.dirname(out_dir)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=os.path.basename(out_dir) + ".tmp-", dir=parent)
-    try:
-        os.chmod(tmp, 0o777 & ~kitti._UMASK)
+    with files.staged_dir(out_dir, overwrite=overwrite) as tmp:
         sub = ["image_2", "image_3", "disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1", "flow_occ",
                "flow_noc", "calib_cam_to_cam"]
         for s in sub:
@@ -654,13 +645,7 @@ def write_kitti_layout(out_dir: str, num: int, seed: int = 0, height: int = 256,
                           "disp_noc_1, flow_occ, flow_noc, calib_cam_to_cam/NNNNNN.txt)"}
         with open(os.path.join(tmp, "synthetic.json"), "w") as fh:
             json.dump(meta, fh, indent=1)
-        if os.path.exists(out_dir):
-            shutil.rmtree(out_dir) if os.path.isdir(out_dir) else os.remove(out_dir)
-        os.rename(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out_dir
+    return os.path.abspath(out_dir)
 
 
 def main(argv=None) -> int:

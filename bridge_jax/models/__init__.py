@@ -40,6 +40,18 @@ INPUT_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.M
 """Working height and width must be multiples of this, per model name."""
 
 
+def check_working_size(name: str, height: Any, width: Any, what: str = "working size") -> None:
+    """Raises ValueError unless height and width are positive integer multiples of `INPUT_MULTIPLE[name]`.
+
+    `what` names the option in the message (e.g. "config.height/config.width" or "--height/--width").
+    """
+    multiple = INPUT_MULTIPLE[name]
+    ints = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (height, width))
+    if not ints or height <= 0 or width <= 0 or height % multiple or width % multiple:
+        raise ValueError(f"{what} must be positive multiples of {multiple} for {name}, got {height}x{width} "
+                         "(height x width)")
+
+
 def _as_dict(config: Any) -> dict:
     if isinstance(config, str):
         return {"name": config}
@@ -93,8 +105,7 @@ def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
     if cfg.get("head_init") == "zeros":
         # Zero output convs: the maps start at the zero-motion solution instead of a random field of
         # several pixels (0.3 tanh of a random conv), from which the photometric gradient, a local
-        # signal, cannot find its way back (measured: EPE 1.9x zero-motion at init, still 1.7x after
-        # 200 steps overfitting one cycle; from zero heads 0.48x after 100 steps). The layers below
+        # signal, cannot find its way back (experiments/results/train_bench.md). The layers below
         # still get gradients once the head weights move away from zero.
         heads = _HEAD_PREFIXES[cfg["name"]]
         params = {k: (jax.tree.map(np.zeros_like, v) if k.startswith(heads) else v) for k, v in params.items()}
@@ -134,4 +145,4 @@ def param_count(params: Any) -> int:
     return int(sum(math.prod(p.shape) for p in jax.tree.leaves(params)))
 
 
-__all__ = ["NAMES", "INPUT_MULTIPLE", "model_config", "init", "abstract_init", "apply", "param_count"]
+__all__ = ["NAMES", "INPUT_MULTIPLE", "check_working_size", "model_config", "init", "abstract_init", "apply", "param_count"]

@@ -4,8 +4,8 @@ Why not `flax.nnx.Conv`: the ported networks must match PyTorch numerics exactly
 weights behave the same). PyTorch pads *symmetrically* (`padding=k//2` on both sides, also for stride 2),
 whereas `'SAME'` pads stride-2 convs asymmetrically; and PyTorch's default init differs from Flax's.
 
-Performance (see ../shared/notes/xla-cpu-performance.md): on XLA:CPU a 1x1 convolution is written as a
-`jnp.dot` over the channel axis; its weight gradient is ~4x faster than the equivalent `lax.conv`.
+Performance: on XLA:CPU a 1x1 convolution is written as a `jnp.dot` over the channel axis, whose weight gradient
+is several times faster than the equivalent `lax.conv`'s (experiments/results/model_bench.md).
 
 Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2, 3, 1, 0)); biases `(out,)`.
 """
@@ -16,6 +16,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 from jax import lax
 
@@ -126,7 +127,8 @@ def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
 
 DOTS_WEIGHT_GRAD_MIN_CHANNELS = 0
 """3x3 convs with at least this many input channels get their weight gradient as 9 shifted dots
-(`_conv_dots_wgrad`); 0 = never (XLA's own conv backward). Measured in experiments/results/perf.md §8."""
+(`_conv_dots_wgrad`); 0 = never (XLA's own conv backward; `bench --what conv_backward` compares the two,
+experiments/results/perf.md)."""
 
 
 def _use_dots_weight_grad(k_shape, dilation) -> bool:
@@ -291,8 +293,6 @@ def init_params_like(model: nnx.Module, abstract_params: dict, rng: jax.Array) -
     Returns:
       a params dict with the structure of `abstract_params`, float32 numpy arrays.
     """
-    import numpy as np
-
     specs = []  # (path to kernel's parent, kernel shape, bias shape, kind)
     for path, node in nnx.iter_graph(model):
         if isinstance(node, (Conv, ConvTranspose)):
@@ -327,3 +327,12 @@ def init_params_like(model: nnx.Module, abstract_params: dict, rng: jax.Array) -
     if missing:
         raise ValueError(f"parameters without an initialiser: {missing[:5]}")
     return out
+
+
+def check_input_shape(pair, multiple: int) -> None:
+    """Raise ValueError unless `pair` is `(N, H, W, 6)` with H, W multiples of `multiple`."""
+    if pair.ndim != 4 or pair.shape[-1] != 6:
+        raise ValueError(f"model input must be (N, H, W, 6) (two RGB images concatenated), got {pair.shape}")
+    h, w = pair.shape[1:3]
+    if h % multiple or w % multiple or h == 0 or w == 0:
+        raise ValueError(f"model input height and width must be positive multiples of {multiple}, got {h}x{w}")

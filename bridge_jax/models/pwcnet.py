@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from bridge_jax.geometry import resize_bilinear_align_corners
-from bridge_jax.models.layers import Conv, ConvTranspose, leaky_relu
+from bridge_jax.models.layers import Conv, ConvTranspose, check_input_shape, leaky_relu
 
 DEFAULT_CONFIG = {
     "name": "pwcnet",
@@ -179,8 +179,6 @@ class PWCNet(nnx.Module):
         return x, getattr(self, f"predict_flow{lvl}")(x)
 
     def __call__(self, pair: jax.Array) -> dict[str, tuple[jax.Array, ...]]:
-        from bridge_jax.models.resnet_md import check_input_shape
-
         check_input_shape(pair, MULTIPLE)
         n, h, w, _ = pair.shape
         feats = self.pyramid(jnp.concatenate([pair[..., :3], pair[..., 3:]], axis=0))

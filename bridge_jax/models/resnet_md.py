@@ -1,4 +1,4 @@
-"""The paper's network P(I_a, I_b): a Monodepth-style ResNet-50 encoder-decoder (REFERENCE.md §1a).
+"""The paper's network P(I_a, I_b): a Monodepth-style ResNet-50 encoder-decoder, as the upstream code builds it.
 
 Input: two RGB images in [0, 1] concatenated on channels, `(N, H, W, 6)` = [first(3), second(3)], H and W
 multiples of 64. Output: the correspondence map from the first image to the second at 4 scales.
@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from bridge_jax.models.layers import Conv, elu, max_pool_3x3_s2, upsample_nearest2x, upsample_nearest2x_conv3x3
+from bridge_jax.models.layers import (Conv, check_input_shape, elu, max_pool_3x3_s2, upsample_nearest2x,
+                                      upsample_nearest2x_conv3x3)
 
 DEFAULT_CONFIG = {
     "name": "resnet_md",
@@ -61,7 +62,7 @@ HEAD_INITS = ("torch", "zeros")
 MULTIPLE = 64
 SUBPIXEL_MIN_PIXELS = 2048
 """`subpixel_upconv="auto"` uses the low-resolution form when the decoder input has at least this many pixels
-(at 256x512: up3, up2, up1; measured faster there, and slower on the small deep maps of up6..up4)."""
+(at 256x512: up3, up2, up1); on the small deep maps of up6..up4 the plain form is faster on XLA:CPU."""
 """H and W must be multiples of this (six stride-2 stages)."""
 
 
@@ -181,15 +182,6 @@ class MonodepthResNet(nnx.Module):
 
     def __call__(self, pair: jax.Array) -> dict[str, tuple[jax.Array, ...]]:
         return self.forward_with_activations(pair)[0]
-
-
-def check_input_shape(pair, multiple: int) -> None:
-    """Raise ValueError unless `pair` is `(N, H, W, 6)` with H, W multiples of `multiple`."""
-    if pair.ndim != 4 or pair.shape[-1] != 6:
-        raise ValueError(f"model input must be (N, H, W, 6) (two RGB images concatenated), got {pair.shape}")
-    h, w = pair.shape[1:3]
-    if h % multiple or w % multiple or h == 0 or w == 0:
-        raise ValueError(f"model input height and width must be positive multiples of {multiple}, got {h}x{w}")
 
 
 def build(config: Mapping, rngs: nnx.Rngs) -> MonodepthResNet:

@@ -1,0 +1,6 @@
+"""`python -m bridge_jax.bench`: see `bridge_jax.bench.cli`."""
+import sys
+
+from bridge_jax.bench.cli import main
+
+sys.exit(main())

@@ -1,0 +1,82 @@
+"""Benchmark records: the fields every measurement carries, the table, and the JSON-lines file."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+from typing import Sequence
+
+import jax
+import jaxlib
+
+from bridge_jax import files
+from bridge_jax.bench.device import device_memory_peak_bytes
+from bridge_jax.bench.timing import cpu_model, loadavg, peak_rss_gib
+
+REQUIRED_FIELDS = ("what", "variant", "config", "height", "width", "cycles", "dtype", "repeats", "warmup",
+                   "compile_s", "median_s", "min_s", "max_s", "peak_rss_gib", "device_memory_peak_bytes", "flops",
+                   "achieved_tflops", "peak_tflops", "peak_source", "mfu", "traces_timed", "compiles_timed",
+                   "recompiled", "device_kind", "platform", "num_devices", "jax_version", "jaxlib_version",
+                   "date", "cpu_model", "loadavg", "other_procs_cpu_frac")
+
+
+def environment(run, args) -> dict:
+    """The fields that describe the machine and the measured configuration (`run` = a one-device `setup.Run`)."""
+    dev = jax.devices()[0]
+    return dict(config=args.config, overrides=list(args.set or []), height=run.height, width=run.width,
+                cycles=run.global_batch, dtype=run.model.dtype, repeats=args.repeats, warmup=args.warmup,
+                device_kind=dev.device_kind, platform=dev.platform, num_devices=jax.device_count(),
+                jax_version=jax.__version__, jaxlib_version=jaxlib.__version__, python=platform.python_version(),
+                cpu_model=cpu_model(), cpu_count=os.cpu_count(),
+                date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+
+
+def finish(rec: dict, env: dict, peak: tuple[float, str] | None) -> dict:
+    out = dict(env)
+    out.update(rec)
+    out["peak_rss_gib"] = rec.get("peak_rss_gib") or round(peak_rss_gib(), 3)
+    if "device_memory_peak_bytes" not in rec:
+        out["device_memory_peak_bytes"] = device_memory_peak_bytes() if not rec["what"].startswith("peer") else None
+    flops, med = out.get("flops"), out.get("median_s")
+    out["achieved_tflops"] = round(flops / med / 1e12, 5) if flops and med else None
+    if peak is not None and out["achieved_tflops"] is not None:
+        out["peak_tflops"], out["peak_source"] = round(peak[0], 4), peak[1]
+        out["mfu"] = round(out["achieved_tflops"] / peak[0], 4)
+    else:
+        out["peak_tflops"] = round(peak[0], 4) if peak else None
+        out["peak_source"] = peak[1] if peak else None
+        out["mfu"] = None
+    out["loadavg"] = loadavg()
+    return out
+
+
+def _fmt(v, spec=".3g"):
+    return "-" if v is None else format(v, spec) if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
+def table(records: Sequence[dict]) -> str:
+    head = ("what", "variant", "shape", "dtype", "compile s", "median s", "min s", "max s", "peak RSS GiB",
+            "GFLOP", "TFLOP/s", "MFU", "retraced", "others' CPU")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in records:
+        shape = f"{r.get('cycles')}x{r.get('height')}x{r.get('width')}"
+        row = (r["what"], r["variant"], shape, r.get("dtype"), _fmt(r.get("compile_s")), _fmt(r.get("median_s"), ".4g"),
+               _fmt(r.get("min_s"), ".4g"), _fmt(r.get("max_s"), ".4g"), _fmt(r.get("peak_rss_gib")),
+               _fmt(r["flops"] / 1e9 if r.get("flops") else None, ".5g"), _fmt(r.get("achieved_tflops"), ".4g"),
+               _fmt(r.get("mfu"), ".1%") if r.get("mfu") is not None else "-", _fmt(r.get("recompiled")),
+               _fmt(r.get("other_procs_cpu_frac")))
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def append_jsonl(path: str, records: Sequence[dict]) -> None:
+    """Appends records to a JSON-lines file atomically (the old lines and the new ones written together)."""
+    old = ""
+    if os.path.exists(path):
+        with open(path) as f:
+            old = f.read()
+        if old and not old.endswith("\n"):
+            old += "\n"
+    files.write_text(path, old + "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))

@@ -1,0 +1,176 @@
+"""The maps-first micro-batched training step: the same update as `train_step.train_step`, for XLA:CPU.
+
+On XLA:CPU a Python loop of small jitted calls is both faster and much leaner than one big jit of the whole
+step, and `lax.scan` over micro-batches is very slow. The losses couple all maps of a cycle (occlusion masks,
+left-right consistency, 2-warp), so the network cannot simply be run and differentiated micro-batch by
+micro-batch. Instead, per step (`MicroBatchedStep.phases` lists them):
+
+  split       the B * 2P pair inputs into M micro-batches of `micro_batch` rows per device;
+  forward     the network on each micro-batch -> every map of the batch;
+  loss        the cycle loss of the whole batch and its gradient with respect to the maps;
+  accumulate  each micro-batch again under `jax.vjp`, pulled back with its maps' cotangents, summed into a
+              donated gradient accumulator;
+  update      Adam and the non-finite guard (`train_step.apply_gradients`), state donated.
+
+Cost: one extra network forward per step; memory: the activations of one micro-batch plus all maps.
+
+Rows are split per device, so that every micro-batch stays evenly sharded over the ('data',) mesh: with D
+devices each holding L = B * 2P / D rows, micro-batch m is rows [m*k, (m+1)*k) of every device's shard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Iterator
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax.sharding import NamedSharding, PartitionSpec as P
+
+from bridge_jax import cycle, losses
+from bridge_jax.network import Network
+from bridge_jax.train_step import apply_gradients, count_trace, sharding_mesh
+
+
+@dataclasses.dataclass(frozen=True)
+class MicroBatches:
+    """How the pair-input rows of a batch are cut: `size` rows per device per call, `num_devices` devices."""
+
+    size: int
+    num_devices: int = 1
+    pairs: tuple[int, ...] = tuple(range(4))
+
+    def count(self, num_rows: int) -> int:
+        """Micro-batches per step for `num_rows` pair inputs; ValueError if `size` does not divide them."""
+        d, k = self.num_devices, self.size
+        local = num_rows // d
+        if num_rows % d or local % k:
+            rows = cycle.rows_per_cycle(self.pairs)
+            raise ValueError(
+                f"micro_batch={k} must divide the pair-forwards per device ({num_rows} rows of "
+                f"{num_rows // rows} cycles over {d} devices = {num_rows / d:g} per device)")
+        return local // k
+
+    def split(self, x) -> tuple:
+        """(D*M*k, ...) rows -> M micro-batches of (D*k, ...), each holding k rows of every device's shard."""
+        d, k = self.num_devices, self.size
+        m = self.count(x.shape[0])
+        x = x.reshape((d, m, k) + x.shape[1:])
+        return tuple(x[:, i].reshape((d * k,) + x.shape[3:]) for i in range(m))
+
+    def merge(self, parts):
+        """Inverse of `split`: M x (D*k, ...) -> (D*M*k, ...)."""
+        d, k = self.num_devices, self.size
+        m = len(parts)
+        y = jnp.stack(parts)  # (M, D*k, ...)
+        y = y.reshape((m, d, k) + y.shape[2:])
+        y = jnp.swapaxes(y, 0, 1)
+        return y.reshape((d * m * k,) + y.shape[3:])
+
+    def is_stereo(self, i: int) -> tuple[bool, ...]:
+        """Which rows of micro-batch `i` are stereo pairs (the same pattern on every device's shard)."""
+        return cycle.row_is_stereo(self.pairs, self.size, offset=i * self.size) * self.num_devices
+
+
+# ---------------------------------------------------------------------------------------------- the phases
+def split(cycles, *, batches: MicroBatches):
+    count_trace("micro/split")
+    return batches.split(cycle.batch_pair_inputs(cycles, batches.pairs))
+
+
+def forward(params, x, rows, *, net: Network):
+    """Maps of one micro-batch; `rows` = `Network.static_rows` of its stereo pattern (static)."""
+    count_trace("micro/forward")
+    return net(params, x, rows)
+
+
+def loss_and_map_grads(map_parts, cycles, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
+    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch."""
+    count_trace("micro/loss")
+
+    def objective(parts):
+        maps = jax.tree.map(lambda *p: batches.merge(p), *parts)
+        return losses.cycle_loss(maps, cycles, loss_cfg)
+
+    (loss, terms), dmaps = jax.value_and_grad(objective, has_aux=True)(map_parts)
+    return loss, terms, dmaps
+
+
+def zeros_like_params(params):
+    count_trace("micro/zeros")
+    return jax.tree.map(jnp.zeros_like, params)
+
+
+def accumulate(acc, params, x, dmaps, rows, *, net: Network):
+    """acc + the parameter gradient of one micro-batch (its forward again under `jax.vjp`, pulled back)."""
+    count_trace("micro/accumulate")
+    _, vjp = jax.vjp(lambda p: net(p, x, rows), params)
+    (g,) = vjp(dmaps)
+    return jax.tree.map(jnp.add, acc, g)
+
+
+def update(state, grads, loss, terms, *, tx, schedule):
+    count_trace("micro/update")
+    return apply_gradients(state, loss, terms, grads, tx, schedule)
+
+
+class MicroBatchedStep:
+    """`(state, cycles) -> (new_state, metrics)` like `train_step.make_train_step`'s function, computed maps-first
+    with `micro_batch` pair-forwards per device per call (see the module docstring). `state` is donated."""
+
+    def __init__(self, net: Network, loss_cfg: losses.LossConfig, tx, schedule, *, micro_batch: int,
+                 num_devices: int = 1, state_sharding=None, batch_sharding=None):
+        if int(micro_batch) <= 0:
+            raise ValueError(f"micro_batch must be positive, got {micro_batch}")
+        self.net = net
+        self.batches = MicroBatches(int(micro_batch), int(num_devices), tuple(loss_cfg.pairs))
+        sharded = state_sharding is not None
+        rep = NamedSharding(sharding_mesh(state_sharding), P()) if sharded else None
+        param_sharding = state_sharding["params"] if sharded else None
+        shard = lambda **kw: kw if sharded else {}  # jit's sharding arguments, only when there is a mesh
+        self._split = jax.jit(functools.partial(split, batches=self.batches), **shard(in_shardings=(batch_sharding,)))
+        self._forward = jax.jit(functools.partial(forward, net=net), static_argnums=(2,))
+        self._loss = jax.jit(functools.partial(loss_and_map_grads, batches=self.batches, loss_cfg=loss_cfg))
+        self._zeros = jax.jit(zeros_like_params, **shard(out_shardings=param_sharding))
+        self._accumulate = jax.jit(functools.partial(accumulate, net=net), donate_argnums=(0,), static_argnums=(4,))
+        # Only the state is donated: the gradient accumulator has no output of its shape left to alias.
+        self._update = jax.jit(functools.partial(update, tx=tx, schedule=schedule), donate_argnums=(0,),
+                               **shard(out_shardings=(state_sharding, rep)))
+
+    def _rows(self, i: int) -> tuple[bool, ...]:
+        return self.net.static_rows(self.batches.is_stereo(i))
+
+    def phases(self, state: dict, cycles) -> Iterator[tuple[str, Any]]:
+        """One step, phase by phase: yields (name, output) after "split", "forward", "loss", "accumulate" and
+        "update" (whose output is (new_state, metrics)). Nothing blocks in between: a benchmark times a phase by
+        blocking on its output. `state` is donated to the last phase."""
+        params = state["params"]
+        xs = self._split(cycles)
+        yield "split", xs
+        maps = [self._forward(params, x, self._rows(i)) for i, x in enumerate(xs)]
+        yield "forward", maps
+        loss, terms, dmaps = self._loss(tuple(maps), cycles)
+        del maps
+        yield "loss", (loss, terms, dmaps)
+        acc = self._zeros(params)
+        for i, (x, dm) in enumerate(zip(xs, dmaps)):
+            acc = self._accumulate(acc, params, x, dm, self._rows(i))
+        yield "accumulate", acc
+        yield "update", self._update(state, acc, loss, terms)
+
+    def loss_and_grads(self, params, cycles):
+        """((loss, terms), grads) of the batch, computed maps-first (the step without its update)."""
+        out = {}
+        for name, value in self.phases({"params": params}, cycles):
+            out[name] = value
+            if name == "accumulate":
+                break
+        loss, terms, _ = out["loss"]
+        return (loss, terms), out["accumulate"]
+
+    def __call__(self, state: dict, cycles):
+        for _, out in self.phases(state, cycles):
+            pass
+        return out

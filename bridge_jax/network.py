@@ -1,0 +1,106 @@
+"""The network as training and inference call it: pair inputs -> correspondence maps, shared or separate.
+
+The paper trains one network P for stereo and flow pairs (shared weights); its "without sharing weights"
+ablation has one network per task. `Network` hides the difference: with `separate=True` the params are
+`{"stereo": ..., "flow": ...}` and every input row goes through the network of its task (which rows are stereo
+is static, see `cycle.row_is_stereo`). Params stay float32; `dtype` only changes the compute dtype.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bridge_jax import models
+
+COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+"""Names of the compute dtypes (None = float32, the models' own dtype)."""
+_ALIASES = {None: "float32", "fp32": "float32", "bf16": "bfloat16"}
+
+
+def compute_dtype(dtype: Any):
+    """`None` (float32) or `jnp.bfloat16` from a name ("float32", "bfloat16", "fp32", "bf16"), None or a dtype.
+
+    Raises ValueError for anything else.
+    """
+    if dtype is None or isinstance(dtype, str):
+        name = _ALIASES.get(dtype, dtype)
+        if name not in COMPUTE_DTYPES:
+            raise ValueError(f"dtype must be one of {sorted(COMPUTE_DTYPES)}, got {dtype!r}")
+        return COMPUTE_DTYPES[name]
+    d = jnp.dtype(dtype)
+    if d == jnp.float32:
+        return None
+    if d == jnp.bfloat16:
+        return jnp.bfloat16
+    raise ValueError(f"dtype must be float32 or bfloat16, got {dtype!r}")
+
+
+def init_params(rng: jax.Array, model_cfg: Mapping, separate: bool = False) -> tuple[Any, dict]:
+    """(graphdef, params) of a new network; with `separate`, two independently drawn networks
+    `{"stereo": ..., "flow": ...}` (the flow network's key is `fold_in(rng, 1)`)."""
+    graphdef, params = models.init(rng, model_cfg)
+    if separate:
+        _, params_flow = models.init(jax.random.fold_in(rng, 1), model_cfg)
+        params = {"stereo": params, "flow": params_flow}
+    return graphdef, params
+
+
+def check_separate_params(params: Any, separate: bool) -> None:
+    """A separate-networks model needs params {"stereo": ..., "flow": ...}."""
+    if separate and not (isinstance(params, Mapping) and set(params) == {"stereo", "flow"}):
+        raise ValueError("separate stereo/flow networks need params {'stereo': ..., 'flow': ...}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Network:
+    """Pair inputs -> maps, for training and inference.
+
+    Attributes:
+      graphdef: the static NNX graph (`models.init` / `models.abstract_init`).
+      separate: params are {"stereo": ..., "flow": ...} and rows go through the network of their task.
+      dtype: compute dtype (None = float32, or jnp.bfloat16); outputs are float32 either way.
+    """
+
+    graphdef: Any
+    separate: bool = False
+    dtype: Any = None
+
+    def __call__(self, params, x, is_stereo: Sequence[bool] = ()):
+        """x: (N, H, W, 6) float32 pair inputs -> maps {"px": 4 x (N, h, w, 2), "frac": ...} float32.
+
+        `is_stereo` (N static bools) is read only when the networks are separate.
+        """
+        if not self.separate:
+            return self._one(params, x)
+        is_stereo = np.asarray(is_stereo, bool)
+        if is_stereo.shape != (x.shape[0],):
+            raise ValueError(f"is_stereo has {is_stereo.shape} entries for {x.shape[0]} rows")
+        idx_s, idx_f = np.nonzero(is_stereo)[0], np.nonzero(~is_stereo)[0]
+        parts, order = [], []
+        if idx_s.size:
+            parts.append(self._one(params["stereo"], x[idx_s]))
+            order.append(idx_s)
+        if idx_f.size:
+            parts.append(self._one(params["flow"], x[idx_f]))
+            order.append(idx_f)
+        if len(parts) == 1:
+            return parts[0]
+        inverse = np.argsort(np.concatenate(order))
+        return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=0)[inverse], parts[0], parts[1])
+
+    def _one(self, params, x):
+        if self.dtype is not None and self.dtype != jnp.float32:
+            maps = models.apply(self.graphdef, params, x.astype(self.dtype), dtype=self.dtype)
+        else:
+            maps = models.apply(self.graphdef, params, x)
+        return jax.tree.map(lambda m: m.astype(jnp.float32), maps)
+
+    def static_rows(self, is_stereo: Sequence[bool]) -> tuple[bool, ...]:
+        """The `is_stereo` to pass to a jitted call as a static argument: () for a shared network, which does
+        not look at it (so all row patterns share one compiled function)."""
+        return tuple(bool(s) for s in is_stereo) if self.separate else ()
