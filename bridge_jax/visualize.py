@@ -304,8 +304,8 @@ def panel(images: Sequence[np.ndarray], labels: Optional[Sequence[str]] = None, 
     for i, tile in enumerate(tiles):
         if tile.shape[:2] != (h0, w0):
             tile = cv2.resize(tile, (w0, h0), interpolation=cv2.INTER_NEAREST)
-        tile = np.ascontiguousarray(tile)
         if labels is not None and i < len(labels) and labels[i]:
+            tile = tile.copy()  # the caption is drawn on a copy: the caller's image (a frame) stays as it was
             scale = max(0.4, h0 / 400.0)
             (tw, th), _ = cv2.getTextSize(labels[i], cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
             cv2.rectangle(tile, (0, 0), (tw + 6, th + 8), (0, 0, 0), -1)

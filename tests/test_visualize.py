@@ -96,6 +96,11 @@ def test_colorbar_and_panel():
     assert (p[20:22] == 255).all()                         # horizontal gap
     assert p[19, 81].tolist() == [255, 255, 255]           # tile b (float ones → 255), below its label
     assert p[2, 2].tolist() == [0, 0, 0] and p[19, 39].tolist() == [0, 0, 0]
+    # the captions are drawn on copies: a uint8 input (e.g. a validation frame reused at every validation) is
+    # left as it was
+    frame = np.full((20, 40, 3), 77, np.uint8)
+    p = visualize.panel([frame, frame], labels=["left t", "again"])
+    assert (frame == 77).all() and p[2, 2].tolist() == [0, 0, 0]
 
 
 def test_write_image_roundtrip(tmp_path):
