@@ -40,7 +40,7 @@ from tensorboardX import SummaryWriter
 from tensorboardX.proto.summary_pb2 import Summary
 from tqdm import tqdm
 
-from bridge_jax import checkpointing, files, inference, models, network, setup, train_step, visualize
+from bridge_jax import checkpointing, cli, files, inference, models, network, setup, train_step, visualize
 from bridge_jax.data import pipeline
 from bridge_jax.eval.baselines import zero_method
 from bridge_jax.eval.datasets import Frame, synthetic_frames
@@ -423,11 +423,9 @@ def main(argv):
         enable_compilation_cache(run.compilation_cache_dir, FLAGS.workdir)
         result = train_and_evaluate(run, FLAGS.workdir)
     except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2)
+        raise SystemExit(cli.report_error(e))
     except TrainingDiverged as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(1)
+        raise SystemExit(cli.report_error(e, code=1))
     msg = "interrupted; checkpoint saved" if result["interrupted"] else "done"
     print(f"{msg}: step {result['step']}, checkpoint {result['checkpoint']}, metrics "
           f"{os.path.join(result['workdir'], 'metrics.jsonl')}", flush=True)

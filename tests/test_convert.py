@@ -132,7 +132,7 @@ def write_pth(path, obj, tensors, legacy=False):
 
 
 def upstream_shapes(stem, planes, blocks, decoder, exp=4):
-    """{key: OIHW shape} of upstream MonodepthNet, from REFERENCE.md §1e (independent of convert.py)."""
+    """{key: OIHW shape} of upstream MonodepthNet, from its published layer table (independent of convert.py)."""
     s = {"conv1.weight": (stem, 6, 7, 7), "conv1.bias": (stem,)}
     cin = stem
     for li, (p, n) in enumerate(zip(planes, blocks), start=1):
