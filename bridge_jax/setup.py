@@ -16,6 +16,7 @@ from typing import Any, Optional, Sequence
 
 import jax
 import ml_collections
+from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import cycle, losses, models
 from bridge_jax.data.pipeline import DataConfig
@@ -268,6 +269,15 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
         num_train_steps=int(fields["num_train_steps"]), init_from=str(fields["init_from"]),
         compilation_cache_dir=fields["compilation_cache_dir"],
         config_json=json.loads(config.to_json_best_effort()))
+
+
+def data_parallel(run: Run, state) -> tuple[jax.sharding.Mesh, Any, NamedSharding]:
+    """(mesh, state sharding, batch sharding) of the run's data parallelism: a 1-D ('data',) mesh of its devices,
+    the state replicated, batches split along their leading axis. Auto axis type: XLA propagates the batch
+    sharding (the model code has no sharding annotations)."""
+    mesh = jax.make_mesh((run.num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,), devices=run.devices)
+    replicated = NamedSharding(mesh, P())
+    return mesh, jax.tree.map(lambda _: replicated, state), NamedSharding(mesh, P("data"))
 
 
 def build_step(run: Run, net: Network, tx, schedule, *, state_sharding=None, batch_sharding=None):

@@ -34,7 +34,6 @@ import jax
 import ml_collections
 import numpy as np
 from absl import app, flags
-from jax.sharding import NamedSharding, PartitionSpec as P
 from ml_collections import config_flags
 from tensorboardX import SummaryWriter
 from tensorboardX.proto.summary_pb2 import Summary
@@ -301,12 +300,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     net = run.model.network(graphdef)
 
     ##### Shard & transfer #####################################################################################
-    # Auto axis type: XLA propagates the batch sharding (the model code has no sharding annotations).
-    mesh = jax.make_mesh((run.num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,),
-                         devices=run.devices)
-    batch_sharding = NamedSharding(mesh, P("data"))
     host_state = jax.tree.map(np.asarray, train_step.create_train_state(params, tx, jax.random.key_data(state_rng)))
-    state_sharding = jax.tree.map(lambda _: NamedSharding(mesh, P()), host_state)
+    mesh, state_sharding, batch_sharding = setup.data_parallel(run, host_state)
     state = jax.tree.map(lambda x, s: jax.make_array_from_callback(x.shape, s, lambda idx: x[idx]),
                          host_state, state_sharding)
     del host_state, params

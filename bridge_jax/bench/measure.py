@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import cycle, inference, losses, network, setup, train_step
 from bridge_jax.bench.device import cost_flops
@@ -64,9 +63,8 @@ def build_train_step(config, micro_batch: int, num_devices: int = 1):
     cycles = np.random.default_rng(0).random((run.global_batch, 4, run.height, run.width, 3), dtype=np.float32)
     kw = {}
     if num_devices > 1:
-        mesh = jax.make_mesh((num_devices,), ("data",), axis_types=(jax.sharding.AxisType.Auto,), devices=run.devices)
-        rep = NamedSharding(mesh, P())
-        kw = dict(state_sharding=jax.tree.map(lambda _: rep, state), batch_sharding=NamedSharding(mesh, P("data")))
+        _, state_sharding, batch_sharding = setup.data_parallel(run, state)
+        kw = dict(state_sharding=state_sharding, batch_sharding=batch_sharding)
         state = jax.device_put(state, kw["state_sharding"])
         cycles = jax.device_put(cycles, kw["batch_sharding"])
     else:

@@ -24,6 +24,7 @@ from bridge_jax import geometry
 from bridge_jax.eval.datasets import Frame
 from bridge_jax.inference import map_to_input_resolution
 
+
 def frame_jobs(frame: Frame) -> list[tuple[str, str, str]]:
     """(prediction key, image a, image b) of the pairs this frame needs."""
     jobs = [("disp_t", "left_t", "right_t")]
