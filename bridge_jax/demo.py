@@ -1,6 +1,6 @@
 r"""README main job: train the `demo` config on the built-in synthetic stereo video, then evaluate it.
 
-    python -m bridge_jax.demo --workdir=work/demo        # what `make demo` runs (8-14 min on 2 CPU cores)
+    python -m bridge_jax.demo --workdir=work/demo        # what `make demo` runs (about 12 min on 2 CPU cores)
 
 Steps:
   1. train bridge_jax/configs/demo.py into WORKDIR/train (resumes if interrupted: run the command again),
@@ -65,7 +65,8 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
         "interrupted": False, "train_dir": train_dir, "eval_dir": eval_dir, "val_data": val_dir,
         "train_seconds": round(train_s, 1), "steps": result["step"],
         "val_flow_epe": val.get("flow_epe_all"), "zero_flow_epe": val.get("zero_flow_epe_all"),
-        "val_flow_epe_vs_zero": val.get("flow_epe_vs_zero"), "val_disp_epe": val.get("disp_epe_all"),
+        "val_flow_epe_vs_zero": val.get("flow_epe_vs_zero"), "val_flow_noc_vs_zero": val.get("flow_noc_vs_zero"),
+        "val_disp_epe": val.get("disp_epe_all"),
         "zero_disp_epe": val.get("zero_disp_epe_all"), "val_d1_all": val.get("disp_d1_all"),
     }
     with open(os.path.join(workdir, "demo_summary.json"), "w") as f:

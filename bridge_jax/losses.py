@@ -23,6 +23,13 @@ the normalisation over a batch. Fixed upstream details that are not in the paper
 images with 3x3 mean windows (VALID); the smoothness term sees the pixel map divided by 20; masks have a border
 band and a 1e-3 floor (see `geometry.occlusion_mask`).
 
+Training switches beyond the paper (each a `LossConfig` field whose default is the paper's behaviour):
+`photometric="census"` (`census_loss`: soft census transform, its Hamming distance, robust penalty, instead of
+eq. 7's SSIM + L1), `scales="finest"` (only scale 0, the working size, instead of the sum over four scales),
+`smoothness_order=1` (first differences, weight `lambda_sm1`, edge constant `beta1`) and `occlusion_start_step`
+(flow pairs unmasked before that training step; the step comes from the train state). Gradient clipping is an
+optimiser setting (`train_step.OptimizerConfig.clip_grad_norm`).
+
 Normalisation. A masked term sum(x * O) / sum(O) is kept per cycle as `Masked(mean(x * O), mean(O))`;
 `reduction="cycle"` (default) averages the per-cycle ratios over the cycles of a batch, `reduction="batch"`
 divides the batch means (upstream, which normalises over its whole 2-cycle batch). The two agree whenever the
@@ -32,15 +39,18 @@ cycles of a batch are identical, and for a single cycle.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Mapping, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from bridge_jax import cycle as cyc
 from bridge_jax import geometry
 
 TWO_WARP_TYPES = ("none", "full1", "full2", "full3")
+PHOTOMETRIC_TYPES = ("ssim_l1", "census")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +81,21 @@ class LossConfig:
     mask_floor: float = 1e-3
     smooth_scale: float = 1.0 / 20.0  # upstream divides the pixel map by 20 before the smoothness term
     num_scales: int = 4
+    # ---- training switches beyond the paper (each default is the paper's behaviour; measured in
+    # experiments/results/ablation.md)
+    # Photometric term: the paper's SSIM + L1 mix, or the census transform (7x7 soft ternary census, its soft
+    # Hamming distance, robust penalty (|x| + 0.01)^0.4; DDFlow/UFlow), robust to brightness changes.
+    photometric: str = "ssim_l1"  # ssim_l1 | census
+    # Scales the loss sums: the paper's 4 scales, or only the finest map (scale 0 = the working size), compared
+    # with the full-resolution images (UFlow, SMURF, DDFlow).
+    scales: str = "all"  # all | finest
+    # Edge-aware smoothness of order 2 (paper eq. 8; weight lambda_sm, edge constant beta) or 1 (first
+    # differences; its own weight lambda_sm1 and edge constant beta1).
+    smoothness_order: int = 2
+    lambda_sm1: float = 4.0
+    beta1: float = 10.0
+    # Flow pairs use no occlusion mask (mask 1, as stereo pairs) before this training step; 0 = the paper.
+    occlusion_start_step: int = 0
 
     def __post_init__(self):
         choices = {
@@ -80,10 +105,15 @@ class LossConfig:
             "two_warp_weighting": ("paper", "upstream"),
             "occlusion_norm": ("warped", "unwarped"),
             "reduction": ("cycle", "batch"),
+            "photometric": PHOTOMETRIC_TYPES,
+            "scales": ("all", "finest"),
+            "smoothness_order": (1, 2),
         }
         for field, allowed in choices.items():
             if getattr(self, field) not in allowed:
                 raise ValueError(f"loss.{field} must be one of {allowed}, got {getattr(self, field)!r}")
+        if not isinstance(self.occlusion_start_step, int) or self.occlusion_start_step < 0:
+            raise ValueError(f"loss.occlusion_start_step must be an integer >= 0, got {self.occlusion_start_step!r}")
         if self.two_warp != "none" and self.tasks != "flow_stereo":
             raise ValueError(f"loss.two_warp={self.two_warp!r} needs stereo and flow pairs (tasks='flow_stereo'), "
                              f"got tasks={self.tasks!r}")
@@ -107,6 +137,19 @@ class LossConfig:
     @property
     def pairs(self) -> tuple[int, ...]:
         return cyc.pairs_for_tasks(self.tasks)
+
+    @property
+    def loss_scales(self) -> range:
+        """The scales the loss sums over (0 = finest)."""
+        return range(1 if self.scales == "finest" else self.num_scales)
+
+    def smoothness_weight(self) -> float:
+        """The smoothness term's weight in eq. 13 (lambda_sm for order 2, lambda_sm1 for order 1)."""
+        return self.lambda_sm if self.smoothness_order == 2 else self.lambda_sm1
+
+    def smoothness_edge_constant(self) -> float:
+        """The edge constant of the smoothness weights exp(-beta |dI|) (beta for order 2, beta1 for order 1)."""
+        return self.beta if self.smoothness_order == 2 else self.beta1
 
     def two_warp_term_weight(self) -> float:
         """Multiplier of each 2-warp term (every variant has two terms)."""
@@ -189,27 +232,123 @@ def photometric_loss(estimate, target, mask) -> Photometric:
     return Photometric(ssim=Masked(s, m), l1=Masked(l1, m))
 
 
+class Census(NamedTuple):
+    """The census photometric term (`census_loss`, `LossConfig.photometric="census"`): one `Masked` part, with the
+    same `value` interface as `Photometric`."""
+
+    census: Any
+
+    def value(self, alpha: float):
+        del alpha  # no mix: the census distance is the whole term
+        return self.census
+
+
+CENSUS_PATCH = 7
+
+
+def _census_kernel(patch: int) -> np.ndarray:
+    """(patch, patch, 1, patch^2) conv kernel whose output channel k is g(x + o_k) - g(x)."""
+    r = patch // 2
+    k = np.zeros((patch, patch, 1, patch * patch), np.float32)
+    for i in range(patch * patch):
+        k[i // patch, i % patch, 0, i] = 1.0
+    k[r, r, 0, :] -= 1.0
+    return k
+
+
+def census_transform(image, patch: int = CENSUS_PATCH):
+    """Soft ternary census transform (DDFlow/UFlow) of an RGB image.
+
+        g = 255 * gray(image)  (ITU-R 601 weights 0.2989, 0.5870, 0.1140)
+        t_k(x) = (g(x + o_k) - g(x)) / sqrt(0.81 + (g(x + o_k) - g(x))^2),   o_k over the patch x patch offsets
+
+    with g zero outside the image (the pixels within patch // 2 of the border are excluded by `census_loss`).
+    The differences are one convolution with a fixed kernel: its gradient is a transposed convolution, several
+    times faster on XLA:CPU than the gradient of patch^2 shifted slices.
+
+    Args:
+      image: (..., H, W, 3) in [0, 1].
+    Returns:
+      (..., H, W, patch^2), offsets in row-major order (dy, then dx).
+    """
+    r = patch // 2
+    lead, (h, w) = image.shape[:-3], image.shape[-3:-1]
+    gray = 255.0 * (0.2989 * image[..., 0] + 0.5870 * image[..., 1] + 0.1140 * image[..., 2])
+    t = jax.lax.conv_general_dilated(gray.reshape((-1, h, w, 1)), jnp.asarray(_census_kernel(patch), gray.dtype),
+                                     (1, 1), [(r, r), (r, r)], dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    t = t.reshape(lead + (h, w, patch * patch))
+    return t * jax.lax.rsqrt(0.81 + jnp.square(t))
+
+
+def soft_hamming_distance(t1, t2):
+    """Soft Hamming distance of two census transforms: sum_k d_k^2 / (0.1 + d_k^2), d = t1 - t2; (..., H, W, 1)."""
+    sq = jnp.square(t1 - t2)
+    return jnp.sum(sq / (0.1 + sq), axis=-1, keepdims=True)
+
+
+def robust_penalty(x, eps: float = 0.01, q: float = 0.4):
+    """The generalised Charbonnier-like penalty (|x| + eps)^q of DDFlow/UFlow (0.01^0.4 = 0.158 at x = 0)."""
+    return jnp.power(jnp.abs(x) + eps, q)
+
+
+def census_loss(estimate, target, mask, patch: int = CENSUS_PATCH) -> Census:
+    """Census photometric loss of a reconstruction `estimate` of `target` under mask O (replaces eq. 7 when
+    `LossConfig.photometric="census"`):
+
+        L_census = sum(rho(H(C(estimate), C(target))) * O_c) / sum(O_c)
+
+    C = `census_transform`, H = `soft_hamming_distance`, rho = `robust_penalty`; O_c = O with a zero band of
+    patch // 2 pixels on every side (where the census patch leaves the image).
+
+    Args:
+      estimate, target: (..., H, W, 3) in [0, 1]; mask: (..., H, W, 1).
+    Returns:
+      Census(Masked) of scalars.
+    """
+    if estimate.shape != target.shape:
+        raise ValueError(f"estimate {tuple(estimate.shape)} and target {tuple(target.shape)} must have the same shape")
+    if mask.shape != estimate.shape[:-1] + (1,):
+        raise ValueError(f"mask must have shape {estimate.shape[:-1] + (1,)}, got {tuple(mask.shape)}")
+    r = patch // 2
+    h, w = estimate.shape[-3:-1]
+    inside = jnp.zeros((h, w, 1), mask.dtype).at[r:h - r, r:w - r].set(1.0)
+    m = mask * inside
+    dist = robust_penalty(soft_hamming_distance(census_transform(estimate, patch), census_transform(target, patch)))
+    return Census(Masked(jnp.mean(dist * m), jnp.mean(m)))
+
+
+PHOTOMETRIC_LOSSES = {"ssim_l1": photometric_loss, "census": census_loss}
+"""`LossConfig.photometric` -> the function (estimate, target, mask) -> Photometric | Census."""
+
+
 # --------------------------------------------------------------------------------------- eq. 8: smoothness
-def smoothness_loss(disp_px, image, *, beta: float = 10.0, scale: float = 1.0 / 20.0):
-    """Edge-aware second-order smoothness of a correspondence map (paper eq. 8).
+def smoothness_loss(disp_px, image, *, beta: float = 10.0, scale: float = 1.0 / 20.0, order: int = 2):
+    """Edge-aware second-order smoothness of a correspondence map (paper eq. 8), or first-order (`order=1`).
 
         L_sm = (mean(w_x |d2x (D * scale)|) + mean(w_y |d2y (D * scale)|)) / 2,   w = exp(-beta * mean_c |dI|)
 
     The first image difference is aligned with the second map difference as upstream does (the [1:] slice):
-    the second difference centred at x is weighted by the image step between x and x + 1.
+    the second difference centred at x is weighted by the image step between x and x + 1. With order=1 the
+    first differences d1x D(x) = D(x + 1) - D(x) are weighted by the image step between the same two pixels.
 
     Args:
       disp_px: (..., H, W, 2) pixel map (upstream smooths px / 20: `scale`).
       image: (..., H, W, C) the image the map lives in (the first image of the pair).
     Returns:
-      scalar (pixels * scale, per pixel); 0 for any map linear in x and y.
+      scalar (pixels * scale, per pixel); 0 for any map linear in x and y (order 2) / any constant map (order 1).
     """
     geometry._check_map("disp_px", disp_px, image.shape[-3:-1])
     d = disp_px * scale
-    d2x = d[..., :, 2:, :] - 2 * d[..., :, 1:-1, :] + d[..., :, :-2, :]
-    d2y = d[..., 2:, :, :] - 2 * d[..., 1:-1, :, :] + d[..., :-2, :, :]
     gx = jnp.mean(jnp.abs(image[..., :, 1:, :] - image[..., :, :-1, :]), axis=-1, keepdims=True)
     gy = jnp.mean(jnp.abs(image[..., 1:, :, :] - image[..., :-1, :, :]), axis=-1, keepdims=True)
+    if order == 1:
+        d1x = d[..., :, 1:, :] - d[..., :, :-1, :]
+        d1y = d[..., 1:, :, :] - d[..., :-1, :, :]
+        return (jnp.mean(jnp.exp(-beta * gx) * jnp.abs(d1x)) + jnp.mean(jnp.exp(-beta * gy) * jnp.abs(d1y))) / 2
+    if order != 2:
+        raise ValueError(f"smoothness order must be 1 or 2, got {order!r}")
+    d2x = d[..., :, 2:, :] - 2 * d[..., :, 1:-1, :] + d[..., :, :-2, :]
+    d2y = d[..., 2:, :, :] - 2 * d[..., 1:-1, :, :] + d[..., :-2, :, :]
     wx = jnp.exp(-beta * gx)[..., :, 1:, :]
     wy = jnp.exp(-beta * gy)[..., 1:, :, :]
     return (jnp.mean(wx * jnp.abs(d2x)) + jnp.mean(wy * jnp.abs(d2y))) / 2
@@ -308,12 +447,13 @@ def two_warp_chains(variant: str, p: PairMaps, target: str = "reconstruction") -
     return tuple(chains[name] for name in TWO_WARP_CHAINS[variant])
 
 
-def two_warp_loss(chains: tuple[TwoWarpChain, ...]) -> tuple[Photometric, ...]:
-    """2-warp consistency loss (paper eqs. 10-12), one `Photometric` per chain.
+def two_warp_loss(chains: tuple[TwoWarpChain, ...], photometric=photometric_loss) -> tuple[Photometric, ...]:
+    """2-warp consistency loss (paper eqs. 10-12), one `Photometric` (or `Census`, with `photometric=census_loss`)
+    per chain.
 
         O'     = W(O, mask_flow)                  (eq. 10; O itself when the chain has no mask_flow)
         I_2warp = W(image, flow)                  (eq. 11; `image` is already a 1-warp reconstruction)
-        L_2warp = photometric_loss(I_2warp, target, O')   (eq. 12)
+        L_2warp = photometric(I_2warp, target, O')   (eq. 12)
 
     All warps of the chains (images, then the masks that are warped) go through one gather.
     """
@@ -331,7 +471,7 @@ def two_warp_loss(chains: tuple[TwoWarpChain, ...]) -> tuple[Photometric, ...]:
             mask = out[k][..., :1]
             k += 1
         estimates.append((out[i], c.target, mask))
-    return tuple(photometric_loss(*e) for e in estimates)
+    return tuple(photometric(*e) for e in estimates)
 
 
 # ----------------------------------------------------------------------------------- eq. 13: cycle loss
@@ -370,12 +510,14 @@ def _select_rows(maps, cfg: LossConfig):
     return maps
 
 
-def scale_terms(px, frac, frames, cfg: LossConfig) -> ScaleTerms:
+def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     """Every term of one cycle at one scale.
 
     Args:
       px, frac: (2P, h, w, 2) pixel and fraction maps of the cycle's active pairs (forward rows, then backward).
       frames: (4, h, w, 3) the cycle's frames at this scale.
+      step: the training step (int32 scalar), read only with `cfg.occlusion_start_step > 0`: before that step
+        flow pairs are not masked. None = after it (masks on).
     """
     pairs = cfg.pairs
     p = len(pairs)
@@ -397,15 +539,20 @@ def scale_terms(px, frac, frames, cfg: LossConfig) -> ScaleTerms:
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
                                        warped_bw_norm=cfg.occlusion_norm == "warped",
                                        border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
-    stereo = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
-    m_f = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_f))
-    m_b = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_b))
+    unmasked = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
+    if cfg.occlusion_start_step > 0 and step is not None:  # before the start step flow pairs are unmasked too
+        unmasked = unmasked | (step < cfg.occlusion_start_step)
+    m_f = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_f))
+    m_b = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_b))
 
-    photo_fwd = photometric_loss(est_f, former, m_f)
-    photo_bwd = photometric_loss(est_b, latter, m_b)
+    photometric = PHOTOMETRIC_LOSSES[cfg.photometric]
+    photo_fwd = photometric(est_f, former, m_f)
+    photo_bwd = photometric(est_b, latter, m_b)
     one = jnp.ones((), jnp.float32)  # plain means are Masked(x, 1): every term is reduced the same way
-    smooth_fwd = Masked(smoothness_loss(px_f, former, beta=cfg.beta, scale=cfg.smooth_scale), one)
-    smooth_bwd = Masked(smoothness_loss(px_b, latter, beta=cfg.beta, scale=cfg.smooth_scale), one)
+    smooth = functools.partial(smoothness_loss, beta=cfg.smoothness_edge_constant(), scale=cfg.smooth_scale,
+                               order=cfg.smoothness_order)
+    smooth_fwd = Masked(smooth(px_f, former), one)
+    smooth_bwd = Masked(smooth(px_b, latter), one)
 
     st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
     lr_fwd = lr_bwd = None
@@ -418,18 +565,20 @@ def scale_terms(px, frac, frames, cfg: LossConfig) -> ScaleTerms:
     if cfg.two_warp != "none":
         chains = two_warp_chains(cfg.two_warp, PairMaps(former, latter, px_f, px_b, est_f, est_b, m_f, m_b),
                                  cfg.two_warp_target)
-        two_warp = two_warp_loss(chains)
+        two_warp = two_warp_loss(chains, photometric)
     return ScaleTerms(photo_fwd, photo_bwd, smooth_fwd, smooth_bwd, lr_fwd, lr_bwd, two_warp)
 
 
-def cycle_terms(maps, cycle, cfg: LossConfig, pyramid=None) -> tuple[ScaleTerms, ...]:
-    """`scale_terms` of one cycle at every scale.
+def cycle_terms(maps, cycle, cfg: LossConfig, pyramid=None, step=None) -> tuple[ScaleTerms, ...]:
+    """`scale_terms` of one cycle at every scale the loss sums (`cfg.loss_scales`: all four, or only the finest,
+    compared with the full-resolution frames).
 
     Args:
       maps: network output for the cycle's 2P inputs (`cycle.pair_inputs` order): {"px": (s0..s3), "frac":
         (s0..s3)}, each (2P, H_s, W_s, 2); all 8 rows are accepted too for a task subset.
       cycle: (4, H, W, 3) frames in [0, 1].
       pyramid: optional tuple of per-scale (4, H_s, W_s, 3) frames; `geometry.image_pyramid` when None.
+      step: the training step (see `scale_terms`).
     """
     if cycle.ndim != 4 or cycle.shape[0] != 4 or cycle.shape[-1] != 3:
         raise ValueError(f"cycle must have shape (4, H, W, 3), got {tuple(cycle.shape)}")
@@ -440,8 +589,8 @@ def cycle_terms(maps, cycle, cfg: LossConfig, pyramid=None) -> tuple[ScaleTerms,
     maps = _select_rows(maps, cfg)
     _check_maps(maps, 2 * len(cfg.pairs), h, w, cfg.num_scales)
     if pyramid is None:
-        pyramid = geometry.image_pyramid(cycle, cfg.num_scales)
-    return tuple(scale_terms(maps["px"][s], maps["frac"][s], pyramid[s], cfg) for s in range(cfg.num_scales))
+        pyramid = (cycle,) if cfg.scales == "finest" else geometry.image_pyramid(cycle, cfg.num_scales)
+    return tuple(scale_terms(maps["px"][s], maps["frac"][s], pyramid[s], cfg, step) for s in cfg.loss_scales)
 
 
 def reduce_over_cycles(terms, reduction: str):
@@ -459,8 +608,9 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
         total = sum_s [photo_fwd + photo_bwd] + lambda_sm * sum_s [smooth_fwd + smooth_bwd]
                 + lambda_lr * sum_s [lr_fwd + lr_bwd] + w_2warp * sum_s [two_warp_a + two_warp_b]
 
-    w_2warp = lambda_2warp (paper) or 0.1 (upstream), see `LossConfig.two_warp_term_weight`.
-    Term names: "<term>_<fwd|bwd>/<scale>" per scale ("l1_", "ssim_", "photo_", "smooth_", "lr_"),
+    s runs over `cfg.loss_scales`; lambda_sm is `cfg.smoothness_weight()` (lambda_sm1 for first order); w_2warp =
+    lambda_2warp (paper) or 0.1 (upstream), see `LossConfig.two_warp_term_weight`.
+    Term names: "<term>_<fwd|bwd>/<scale>" per scale ("l1_", "ssim_" or "census_", "photo_", "smooth_", "lr_"),
     "two_warp_<a|b>/<scale>", and the sums over scales "photo_fwd", "photo_bwd", "smooth_fwd", "smooth_bwd",
     "lr", "two_warp_a", "two_warp_b", "two_warp", "total".
     """
@@ -468,7 +618,8 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
     terms = {}
     for s, t in enumerate(scales):
         for d, photo in (("fwd", t.photo_fwd), ("bwd", t.photo_bwd)):
-            terms[f"l1_{d}/{s}"], terms[f"ssim_{d}/{s}"] = photo.l1, photo.ssim
+            for part, value in photo._asdict().items():  # l1 and ssim, or census
+                terms[f"{part}_{d}/{s}"] = value
             terms[f"photo_{d}/{s}"] = photo.value(a)
         terms[f"smooth_fwd/{s}"], terms[f"smooth_bwd/{s}"] = t.smooth_fwd, t.smooth_bwd
         if t.lr_fwd is not None:
@@ -485,13 +636,14 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
         terms[f"two_warp_{tag}"] = sum(terms[f"two_warp_{tag}/{s}"] for s in n)
         two_warp = two_warp + terms[f"two_warp_{tag}"]
     terms["two_warp"] = two_warp
-    total = (terms["photo_fwd"] + terms["photo_bwd"] + cfg.lambda_sm * (terms["smooth_fwd"] + terms["smooth_bwd"])
+    total = (terms["photo_fwd"] + terms["photo_bwd"]
+             + cfg.smoothness_weight() * (terms["smooth_fwd"] + terms["smooth_bwd"])
              + cfg.lambda_lr * terms["lr"] + cfg.two_warp_term_weight() * two_warp)
     terms["total"] = total
     return total, terms
 
 
-def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
+def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None):
     """The training loss of a batch of cycles (paper eq. 13): `cycle_terms` vmapped over the cycles, reduced
     over them (`cfg.reduction`), weighted by `total_loss`.
 
@@ -500,6 +652,7 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
         per-scale (B * 2P, H_s, W_s, 2) maps (cycle-major).
       cycles: (B, 4, H, W, 3) frames in [0, 1]; a single cycle (4, H, W, 3) is a batch of one.
       pyramids: optional per-scale (B, 4, H_s, W_s, 3) frames (computed when None).
+      step: the training step, an int32 scalar (read only with `cfg.occlusion_start_step > 0`).
     Returns:
       (total scalar, dict of every term by name; see `total_loss`).
     """
@@ -513,5 +666,5 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None):
     if n % b:
         raise ValueError(f"maps have {n} rows, not a multiple of the {b} cycles")
     per_cycle = cyc.unbatch_maps(maps, b)
-    terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p))(per_cycle, cycles, pyramids)
+    terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p, step))(per_cycle, cycles, pyramids)
     return total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)

@@ -86,13 +86,13 @@ def forward(params, x, rows, *, net: Network):
     return net(params, x, rows)
 
 
-def loss_and_map_grads(map_parts, cycles, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
-    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch."""
+def loss_and_map_grads(map_parts, cycles, step, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
+    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch at training step `step`."""
     count_trace("micro/loss")
 
     def objective(parts):
         maps = jax.tree.map(lambda *p: batches.merge(p), *parts)
-        return losses.cycle_loss(maps, cycles, loss_cfg)
+        return losses.cycle_loss(maps, cycles, loss_cfg, step=step)
 
     (loss, terms), dmaps = jax.value_and_grad(objective, has_aux=True)(map_parts)
     return loss, terms, dmaps
@@ -151,7 +151,7 @@ class MicroBatchedStep:
         yield "split", xs
         maps = [self._forward(params, x, self._rows(i)) for i, x in enumerate(xs)]
         yield "forward", maps
-        loss, terms, dmaps = self._loss(tuple(maps), cycles)
+        loss, terms, dmaps = self._loss(tuple(maps), cycles, state.get("step", jnp.zeros((), jnp.int32)))
         del maps
         yield "loss", (loss, terms, dmaps)
         acc = self._zeros(params)
@@ -160,10 +160,12 @@ class MicroBatchedStep:
         yield "accumulate", acc
         yield "update", self._update(state, acc, loss, terms)
 
-    def loss_and_grads(self, params, cycles):
-        """((loss, terms), grads) of the batch, computed maps-first (the step without its update)."""
+    def loss_and_grads(self, params, cycles, step=None):
+        """((loss, terms), grads) of the batch at training step `step` (None = 0), computed maps-first (the step
+        without its update)."""
         out = {}
-        for name, value in self.phases({"params": params}, cycles):
+        state = {"params": params} if step is None else {"params": params, "step": jnp.asarray(step, jnp.int32)}
+        for name, value in self.phases(state, cycles):
             out[name] = value
             if name == "accumulate":
                 break

@@ -225,7 +225,10 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     except (ValueError, TypeError) as e:
         raise ConfigError(f"config.loss: {e}") from e
     data = _typed(DataConfig, data_values, "data")
-    optimizer = OptimizerConfig(**optimizer_values)
+    try:
+        optimizer = OptimizerConfig(**optimizer_values)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"config.{e}") from e
     if not isinstance(fields["compilation_cache_dir"], str):
         raise ConfigError(f"config.compilation_cache_dir must be a folder, 'auto' or '' (off), got "
                           f"{fields['compilation_cache_dir']!r}")

@@ -116,7 +116,8 @@ def validation_frames(run: setup.Run) -> list[Frame]:
 def validate(predictor: inference.Predictor, params, frames: list[Frame], batch: int,
              picture: bool = True) -> tuple[dict, Any]:
     """Validation metrics of `params` (per-image means: "flow_*", "disp_*", the zero-motion baseline's
-    "zero_flow_epe_all" / "zero_disp_epe_all", and "flow_epe_vs_zero"), and the first frame's picture panel."""
+    "zero_flow_epe_all" / "zero_disp_epe_all" (/ "zero_flow_epe_noc"), and the ratios "flow_epe_vs_zero" (and
+    "flow_noc_vs_zero" where the frames have non-occluded masks)), and the first frame's picture panel."""
     model = ModelMethod(predictor.with_params(params), batch, occlusion=True)
     scored = score_methods((frames[i:i + batch] for i in range(0, len(frames), batch)),
                            {"model": model, "zero": zero_method}, num_pictures=int(picture), picture_method="model")
@@ -126,6 +127,9 @@ def validate(predictor: inference.Predictor, params, frames: list[Frame], batch:
     out["zero_flow_epe_all"] = zero["flow_epe_all"]
     out["zero_disp_epe_all"] = zero["disp_epe_all"]
     out["flow_epe_vs_zero"] = out["flow_epe_all"] / max(zero["flow_epe_all"], 1e-12)
+    if "flow_epe_noc" in out and "flow_epe_noc" in zero:
+        out["zero_flow_epe_noc"] = zero["flow_epe_noc"]
+        out["flow_noc_vs_zero"] = out["flow_epe_noc"] / max(zero["flow_epe_noc"], 1e-12)
     return out, (scored.pictures[0][1] if scored.pictures else None)
 
 
@@ -142,6 +146,11 @@ def _check_workdir(run: setup.Run, workdir: str) -> bool:
     if resuming and os.path.exists(old_model):
         with open(old_model) as f:
             prev = json.load(f)
+        try:  # fill keys added since that run was written (e.g. `coords`) with their defaults before comparing
+            prev = dict(models.model_config({k: v for k, v in prev.items() if k != "separate_networks"}),
+                        **({"separate_networks": True} if prev.get("separate_networks") else {}))
+        except (ValueError, TypeError):
+            pass  # not a model this version knows: the comparison below refuses it
         want = run.model.model_json()
         if prev != json.loads(json.dumps(want)):
             raise ConfigError(f"--workdir={workdir} holds a run of a different model ({prev}); this config builds "

@@ -55,6 +55,13 @@ class OptimizerConfig:
     adam_b1: float = 0.9
     adam_b2: float = 0.999
     adam_eps: float = 1e-8
+    # Clip the gradient to this global L2 norm before Adam (0 = off, the paper). Beyond the paper: large
+    # early gradients of a correlation model can otherwise throw its maps far from zero motion.
+    clip_grad_norm: float = 0.0
+
+    def __post_init__(self):
+        if not self.clip_grad_norm >= 0:
+            raise ValueError(f"clip_grad_norm must be >= 0 (0 = off), got {self.clip_grad_norm!r}")
 
 
 def lr_schedule(opt: OptimizerConfig, steps_per_epoch: int) -> optax.Schedule:
@@ -73,9 +80,12 @@ def lr_schedule(opt: OptimizerConfig, steps_per_epoch: int) -> optax.Schedule:
 
 
 def make_optimizer(opt: OptimizerConfig, steps_per_epoch: int):
-    """(Adam with `lr_schedule`, the schedule)."""
+    """(Adam with `lr_schedule`, preceded by global-norm clipping when `opt.clip_grad_norm` > 0; the schedule)."""
     schedule = lr_schedule(opt, steps_per_epoch)
-    return optax.adam(schedule, b1=opt.adam_b1, b2=opt.adam_b2, eps=opt.adam_eps), schedule
+    adam = optax.adam(schedule, b1=opt.adam_b1, b2=opt.adam_b2, eps=opt.adam_eps)
+    if opt.clip_grad_norm > 0:
+        return optax.chain(optax.clip_by_global_norm(float(opt.clip_grad_norm)), adam), schedule
+    return adam, schedule
 
 
 # ##########################################################################################################
@@ -114,13 +124,14 @@ def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     return new_state, metrics
 
 
-def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig):
-    """((loss, terms), d loss / d params) of a batch of cycles (B, 4, H, W, 3), the whole batch at once."""
+def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig, step=None):
+    """((loss, terms), d loss / d params) of a batch of cycles (B, 4, H, W, 3), the whole batch at once; `step`
+    (int32 scalar) is the training step the loss's step-dependent switches read."""
     x = cycle.batch_pair_inputs(cycles, loss_cfg.pairs)
     is_stereo = cycle.row_is_stereo(loss_cfg.pairs, x.shape[0])
 
     def objective(p):
-        return losses.cycle_loss(net(p, x, is_stereo), cycles, loss_cfg)
+        return losses.cycle_loss(net(p, x, is_stereo), cycles, loss_cfg, step=step)
 
     return jax.value_and_grad(objective, has_aux=True)(params)
 
@@ -128,7 +139,7 @@ def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig)
 def train_step(state: dict, cycles, *, net: Network, loss_cfg: losses.LossConfig, tx, schedule):
     """One training step: `(state, cycles (B, 4, H, W, 3)) -> (new_state, metrics)` (a pure function)."""
     count_trace("train_step")
-    (loss, terms), grads = loss_and_grads(state["params"], cycles, net=net, loss_cfg=loss_cfg)
+    (loss, terms), grads = loss_and_grads(state["params"], cycles, net=net, loss_cfg=loss_cfg, step=state["step"])
     return apply_gradients(state, loss, terms, grads, tx, schedule)
 
 

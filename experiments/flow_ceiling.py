@@ -11,8 +11,13 @@ of the zero-motion EPE. Results: experiments/results/train_bench.md (session 4).
   python experiments/flow_ceiling.py supervised --rows flow --mask noc --steps 1500
   python experiments/flow_ceiling.py supervised --rows flow_stereo --mask noc --steps 1500 --lr 3e-4
   python experiments/flow_ceiling.py supervised --rows flow --model pwcnet --overrides '{"warp": "pixels"}'
+  python experiments/flow_ceiling.py supervised --rows flow --model pwc_lite --overrides '{"coords": true}'
   # 3. a trained checkpoint: does it match, or predict from one image? (right image replaced by the left)
   python experiments/flow_ceiling.py matching --workdir work/demo/train
+  # 4. model + unsupervised loss together: overfit ONE training cycle with the real train step (and the same
+  #    with the flow pair's second frame replaced by its first: then nothing can be matched)
+  python experiments/flow_ceiling.py overfit --model pwc_lite --loss '{"photometric": "census"}' --steps 300
+  python experiments/flow_ceiling.py overfit --model pwc_lite --same-image
 
 Each run prints JSON lines (one per evaluation) for experiments/results/raw/.
 """
@@ -93,10 +98,8 @@ def supervised(args) -> None:
     import jax.numpy as jnp
     import optax
     from bridge_jax import models
-    from bridge_jax.configs import default
 
-    mcfg = dict(default.model_section(args.model))
-    mcfg["head_init"] = "zeros"  # as the demo
+    mcfg = models_section(args.model)  # zero heads, as the demo
     mcfg.update(json.loads(args.overrides))
     graphdef, params = models.init(0, mcfg)
     train, val = render(TRAIN_SEED, args.train_samples), render(VAL_SEED, args.val_samples)
@@ -171,6 +174,58 @@ def matching(args) -> None:
     print(json.dumps({"what": "matching", "workdir": args.workdir, "val_samples": len(val), **out}))
 
 
+def overfit_cycle(model_cfg: dict, loss_cfg: dict, *, steps: int, lr: float = 1e-3, seed: int = 1,
+                  same_image: bool = False, eval_every: int = 50, clip_grad_norm: float = 0.0):
+    """Train on ONE synthetic cycle with the real training step (`train_step.train_step`: network on the 8 pair
+    inputs, the cycle loss, Adam), yielding (step, flow EPE / zero-motion EPE of its left flow on GT-valid pixels,
+    disparity EPE in px) every `eval_every` steps. `same_image`: the left t+1 frame is replaced by the left t frame
+    (flow pairs then show no motion, so nothing can be matched; the GT is still the real flow)."""
+    import jax
+    import jax.numpy as jnp
+    from bridge_jax import losses, network, train_step
+
+    s = synthetic.render_sample(seed, H, W)
+    frames = s["cycle"].astype(np.float32) / 255.0
+    if same_image:
+        frames = frames.copy()
+        frames[2] = frames[0]
+    cycles = jnp.asarray(frames)[None]
+    graphdef, params = network.init_params(jax.random.key(0), model_cfg)
+    net = network.Network(graphdef)
+    lcfg = losses.LossConfig.from_dict(loss_cfg)
+    tx, schedule = train_step.make_optimizer(train_step.OptimizerConfig(lr=lr, lr_milestones=(), clip_grad_norm=clip_grad_norm), 1)
+    state = train_step.create_train_state(params, tx, jax.random.PRNGKey(0))
+    step = jax.jit(lambda st, c: train_step.train_step(st, c, net=net, loss_cfg=lcfg, tx=tx, schedule=schedule))
+    forward = jax.jit(lambda p, x: net(p, x)["px"][0])
+    x = np.stack([_pair(frames[0], frames[2]), _pair(frames[0], frames[1])])
+    zero = mean_epe([s], zero_map)
+    for it in range(steps + 1):
+        if it % eval_every == 0 or it == steps:
+            out = np.asarray(forward(state["params"], x))
+            flow_epe = mean_epe([s], lambda _: out[0])
+            disp_epe = mean_epe([s], lambda _: -out[1][..., 0], "disparity")
+            yield it, flow_epe / zero, disp_epe
+        if it < steps:
+            state, _ = step(state, cycles)
+
+
+def overfit(args) -> None:
+    model_cfg = dict(models_section(args.model), **json.loads(args.overrides))
+    t0 = time.time()
+    for it, ratio, disp in overfit_cycle(model_cfg, json.loads(args.loss), steps=args.steps, lr=args.lr,
+                                         same_image=args.same_image, eval_every=args.eval_every,
+                                         clip_grad_norm=args.clip):
+        print(json.dumps({"what": "overfit", "model": args.model, "overrides": args.overrides, "loss": args.loss,
+                          "same_image": args.same_image, "step": it, "flow_vs_zero": round(ratio, 4),
+                          "disp_epe": round(disp, 4), "seconds": round(time.time() - t0, 1)}), flush=True)
+
+
+def models_section(name: str) -> dict:
+    """The model's full config with zero output heads, as the demo starts."""
+    from bridge_jax.configs import default
+    return dict(default.model_section(name), head_init="zeros")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -188,8 +243,17 @@ def main(argv=None) -> int:
     s.add_argument("--batch", type=int, default=2)
     s.add_argument("--eval-every", type=int, default=250)
     sub.choices["matching"].add_argument("--workdir", required=True)
+    o = sub.add_parser("overfit")
+    o.add_argument("--model", default="pwc_lite")
+    o.add_argument("--overrides", default="{}", help="JSON of model config keys")
+    o.add_argument("--loss", default="{}", help="JSON of loss config fields")
+    o.add_argument("--lr", type=float, default=1e-3)
+    o.add_argument("--clip", type=float, default=0.0, help="gradient clipping (global norm; 0 = off)")
+    o.add_argument("--steps", type=int, default=300)
+    o.add_argument("--eval-every", type=int, default=50)
+    o.add_argument("--same-image", action="store_true")
     args = ap.parse_args(argv)
-    {"priors": priors, "supervised": supervised, "matching": matching}[args.cmd](args)
+    {"priors": priors, "supervised": supervised, "matching": matching, "overfit": overfit}[args.cmd](args)
     return 0
 
 

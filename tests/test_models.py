@@ -104,7 +104,7 @@ def test_tiny_uses_same_code_path():
 def test_bad_config_and_input():
     with pytest.raises(ValueError, match="unknown model name"):
         models.model_config("resnet101")
-    with pytest.raises(ValueError, match="unknown resnet_md config keys"):
+    with pytest.raises(ValueError, match="unknown resnet_md(_tiny)? config keys"):
         models.model_config("resnet_md", widht=2)
     graphdef, params = models.init(0, "resnet_md_tiny")
     with pytest.raises(ValueError, match="multiples of 64"):

@@ -11,6 +11,11 @@ directly; `graphdef` is the static NNX graph (hashable, cheap). Names:
 - `resnet_md`: the paper's Monodepth ResNet-50 encoder-decoder (58,461,416 params).
 - `resnet_md_tiny`: the same code with tiny widths/depths (tests, smoke runs).
 - `pwcnet`: the PWC-Net variant of the paper's supplement (9,374,340 params with upstream's defaults).
+- `pwc_lite`: a small correlation network (normalised-feature cost volume, coarse to fine, one shared
+  estimator; beyond the paper), the demo's model: see `bridge_jax.models.pwc_lite`.
+
+Every model takes `coords=True` (normalised x, y channels appended to its input; see
+`models.coordinates`); the default, False, is the paper's network.
 """
 from __future__ import annotations
 
@@ -23,25 +28,28 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from bridge_jax.models import pwcnet, resnet_md
+from bridge_jax.models import pwc_lite, pwcnet, resnet_md
 from bridge_jax.models.layers import init_params_like
 
 _BUILDERS = {
     "resnet_md": (resnet_md.normalize_config, resnet_md.build),
     "resnet_md_tiny": (resnet_md.normalize_config, resnet_md.build),
     "pwcnet": (pwcnet.normalize_config, pwcnet.build),
+    "pwc_lite": (pwc_lite.normalize_config, pwc_lite.build),
 }
 NAMES = tuple(_BUILDERS)
 
 _HEAD_PREFIXES = {"resnet_md": resnet_md.HEAD_PREFIXES, "resnet_md_tiny": resnet_md.HEAD_PREFIXES,
-                  "pwcnet": pwcnet.HEAD_PREFIXES}
+                  "pwcnet": pwcnet.HEAD_PREFIXES, "pwc_lite": pwc_lite.HEAD_PREFIXES}
 
-INPUT_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.MULTIPLE, "pwcnet": pwcnet.MULTIPLE}
+INPUT_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.MULTIPLE, "pwcnet": pwcnet.MULTIPLE,
+                  "pwc_lite": pwc_lite.MULTIPLE}
 """Working height and width must be multiples of this, per model name."""
 
 
 def check_working_size(name: str, height: Any, width: Any, what: str = "working size") -> None:
-    """Raises ValueError unless height and width are positive integer multiples of `INPUT_MULTIPLE[name]`.
+    """Raises ValueError unless height and width are positive integer multiples of `INPUT_MULTIPLE[name]`
+    (and, for pwc_lite, large enough for its 3-level minimum pyramid).
 
     `what` names the option in the message (e.g. "config.height/config.width" or "--height/--width").
     """
@@ -50,6 +58,11 @@ def check_working_size(name: str, height: Any, width: Any, what: str = "working 
     if not ints or height <= 0 or width <= 0 or height % multiple or width % multiple:
         raise ValueError(f"{what} must be positive multiples of {multiple} for {name}, got {height}x{width} "
                          "(height x width)")
+    if name == "pwc_lite":
+        try:
+            pwc_lite.pyramid_levels(int(height), int(width), pwc_lite.MIN_LEVELS)
+        except ValueError as e:
+            raise ValueError(f"{what}: {e}") from None
 
 
 def _as_dict(config: Any) -> dict:

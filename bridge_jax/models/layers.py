@@ -283,6 +283,18 @@ class ConvTranspose(nnx.Module):
         return conv_transpose2d(x, self.kernel[...], self.bias[...], stride=self.stride, padding=self.padding)
 
 
+class ConvLeaky(nnx.Module):
+    """A kaiming-normal conv (3x3 unless told; optionally strided / dilated) + LeakyReLU(0.1): upstream PWC-Net's
+    `myconv`, also pwc_lite's layer. Params under `conv`."""
+
+    def __init__(self, cin: int, cout: int, *, stride: int = 1, dilation: int = 1, kernel: int = 3,
+                 rngs: nnx.Rngs):
+        self.conv = Conv(cin, cout, kernel, stride=stride, dilation=dilation, init="kaiming_normal", rngs=rngs)
+
+    def __call__(self, x):
+        return leaky_relu(self.conv(x))
+
+
 def init_params_like(model: nnx.Module, abstract_params: dict, rng: jax.Array) -> dict:
     """Draw every Conv / ConvTranspose parameter of `model` (may be abstract) from its `init_kind` law.
 
@@ -327,6 +339,36 @@ def init_params_like(model: nnx.Module, abstract_params: dict, rng: jax.Array) -
     if missing:
         raise ValueError(f"parameters without an initialiser: {missing[:5]}")
     return out
+
+
+def fill_config(config, defaults: dict, *, lists=(), ints=(), bools=(), head_inits=()) -> dict:
+    """A model config with defaults filled and values coerced (lists of ints, ints, bools): JSON-serialisable.
+
+    Raises ValueError naming unknown keys (all of `defaults` and "dtype" are known) or a head_init outside
+    `head_inits`.
+    """
+    name = defaults["name"]
+    unknown = set(config) - set(defaults) - {"dtype"}
+    if unknown:
+        raise ValueError(f"unknown {name} config keys {sorted(unknown)}; known: {sorted(defaults)}")
+    out = dict(defaults)
+    out.update(config)
+    for k in lists:
+        out[k] = [int(v) for v in out[k]]
+    for k in ints:
+        out[k] = int(out[k])
+    for k in bools:
+        out[k] = bool(out[k])
+    if head_inits and out["head_init"] not in head_inits:
+        raise ValueError(f"model head_init must be one of {list(head_inits)}, got {out['head_init']!r}")
+    return out
+
+
+def pixel_and_fraction_maps(px) -> dict:
+    """`{"px": px, "frac": px / (W_s, H_s)}` of per-scale float32 pixel maps `(N, H_s, W_s, 2)`."""
+    px = tuple(p.astype(jnp.float32) for p in px)
+    frac = tuple(p / jnp.array([p.shape[2], p.shape[1]], jnp.float32) for p in px)
+    return {"px": px, "frac": frac}
 
 
 def check_input_shape(pair, multiple: int) -> None:

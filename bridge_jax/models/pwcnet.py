@@ -18,6 +18,7 @@ that scale**; `frac = px / (W_s, H_s)`. Unlike resnet_md there is no 0.3*tanh bo
 Init as upstream: kaiming-normal (fan_in) weights, zero biases. Parameter names mirror upstream's module
 attributes (conv1a, conv1aa, ..., conv6_0, predict_flow6, deconv6, upfeat6, ..., dc_conv7); upstream also
 defines an unused `deconv2`, kept here so an upstream state dict maps one to one. Default size: 9,374,340 params.
+`coords=True` (not upstream) appends normalised x, y channels to the images and to every estimator input.
 """
 from __future__ import annotations
 
@@ -28,7 +29,9 @@ import jax.numpy as jnp
 from flax import nnx
 
 from bridge_jax.geometry import resize_bilinear_align_corners
-from bridge_jax.models.layers import Conv, ConvTranspose, check_input_shape, leaky_relu
+from bridge_jax.models.coordinates import coordinate_channels, with_coordinates
+from bridge_jax.models.layers import (Conv, ConvLeaky, ConvTranspose, check_input_shape, fill_config, leaky_relu,
+                                      pixel_and_fraction_maps)
 
 DEFAULT_CONFIG = {
     "name": "pwcnet",
@@ -39,6 +42,7 @@ DEFAULT_CONFIG = {
     "dilations": [1, 2, 4, 8, 16, 1],
     "head_init": "kaiming_normal",
     "warp": "upstream",
+    "coords": False,
 }
 HEAD_PREFIXES = ("predict_flow", "dc_conv7")
 """Top-level parameter names of the convs that output flow; `head_init="zeros"` starts them at zero (every
@@ -120,16 +124,6 @@ def warp_zero(x: jax.Array, flow: jax.Array) -> jax.Array:
     return out * mask[..., None]
 
 
-class _ConvLeaky(nnx.Module):
-    """upstream `myconv`: conv3x3 (optionally strided / dilated) + LeakyReLU(0.1)."""
-
-    def __init__(self, cin: int, cout: int, *, stride: int = 1, dilation: int = 1, rngs: nnx.Rngs):
-        self.conv = Conv(cin, cout, 3, stride=stride, dilation=dilation, init="kaiming_normal", rngs=rngs)
-
-    def __call__(self, x):
-        return leaky_relu(self.conv(x))
-
-
 class PWCNet(nnx.Module):
     """See the module docstring. `__call__(pair (N, H, W, 6)) -> {"px": (s0..s3), "frac": (s0..s3)}`."""
 
@@ -139,27 +133,29 @@ class PWCNet(nnx.Module):
         self.warp = config["warp"]  # normalize_config fills the default
         if len(pyr) != 6 or len(est) != 5 or len(ctx) != 6 or len(dil) != 6:
             raise ValueError("pwcnet config needs 6 pyramid widths, 5 estimator widths, 6 context widths/dilations")
-        cin = 3
+        self.coords = bool(config["coords"])
+        extra = 2 if self.coords else 0  # coordinate channels on the images and on every estimator input
+        cin = 3 + extra
         for lvl in range(1, 7):
             names = ("conv6aa", "conv6a", "conv6b") if lvl == 6 else (f"conv{lvl}a", f"conv{lvl}aa", f"conv{lvl}b")
             for j, name in enumerate(names):
-                setattr(self, name, _ConvLeaky(cin, pyr[lvl - 1], stride=2 if j == 0 else 1, rngs=rngs))
+                setattr(self, name, ConvLeaky(cin, pyr[lvl - 1], stride=2 if j == 0 else 1, rngs=rngs))
                 cin = pyr[lvl - 1]
         nd = (2 * self.md + 1) ** 2
         dense = sum(est)
         for lvl in range(6, 1, -1):
-            od = nd if lvl == 6 else nd + pyr[lvl - 1] + 4
+            od = (nd if lvl == 6 else nd + pyr[lvl - 1] + 4) + extra
             c = od
             for j, width in enumerate(est):
-                setattr(self, f"conv{lvl}_{j}", _ConvLeaky(c, width, rngs=rngs))
+                setattr(self, f"conv{lvl}_{j}", ConvLeaky(c, width, rngs=rngs))
                 c += width
             setattr(self, f"predict_flow{lvl}", Conv(od + dense, 2, 3, init="kaiming_normal", rngs=rngs))
             setattr(self, f"deconv{lvl}", ConvTranspose(2, 2, 4, rngs=rngs))  # deconv2: unused, as upstream
             if lvl > 2:
                 setattr(self, f"upfeat{lvl}", ConvTranspose(od + dense, 2, 4, rngs=rngs))
-        c = nd + pyr[1] + 4 + dense
+        c = nd + pyr[1] + 4 + extra + dense
         for j, (width, d) in enumerate(zip(ctx, dil)):
-            setattr(self, f"dc_conv{j + 1}", _ConvLeaky(c, width, dilation=d, rngs=rngs))
+            setattr(self, f"dc_conv{j + 1}", ConvLeaky(c, width, dilation=d, rngs=rngs))
             c = width
         self.dc_conv7 = Conv(c, 2, 3, init="kaiming_normal", rngs=rngs)
 
@@ -181,7 +177,8 @@ class PWCNet(nnx.Module):
     def __call__(self, pair: jax.Array) -> dict[str, tuple[jax.Array, ...]]:
         check_input_shape(pair, MULTIPLE)
         n, h, w, _ = pair.shape
-        feats = self.pyramid(jnp.concatenate([pair[..., :3], pair[..., 3:]], axis=0))
+        images = jnp.concatenate([pair[..., :3], pair[..., 3:]], axis=0)
+        feats = self.pyramid(with_coordinates(images) if self.coords else images)
         f1 = [f[:n] for f in feats]
         f2 = [f[n:] for f in feats]
         flows = {}
@@ -197,6 +194,8 @@ class PWCNet(nnx.Module):
                 warped = warp_zero(f2[lvl - 1], warp_flow)
                 corr = leaky_relu(correlation(f1[lvl - 1], warped, self.md))
                 x = jnp.concatenate([corr, f1[lvl - 1], up_flow, up_feat], axis=-1)
+            if self.coords:
+                x = jnp.concatenate([x, coordinate_channels(n, *x.shape[1:3], x.dtype)], axis=-1)
             x, flow = self._estimate(lvl, x)
             if lvl > 2:
                 up_flow = getattr(self, f"deconv{lvl}")(flow)
@@ -205,13 +204,9 @@ class PWCNet(nnx.Module):
         for j in range(1, 7):
             x = getattr(self, f"dc_conv{j}")(x)
         flows[2] = flows[2] + self.dc_conv7(x)
-        px, frac = [], []
-        for s in range(4):
-            hs, ws = h // 2 ** s, w // 2 ** s
-            p = resize_bilinear_align_corners(flows[s + 2].astype(jnp.float32) * OUTPUT_GAIN, (hs, ws))
-            px.append(p)
-            frac.append(p / jnp.array([ws, hs], jnp.float32))
-        return {"px": tuple(px), "frac": tuple(frac)}
+        px = [resize_bilinear_align_corners(flows[s + 2].astype(jnp.float32) * OUTPUT_GAIN, (h >> s, w >> s))
+              for s in range(4)]
+        return pixel_and_fraction_maps(px)
 
 
 def build(config: Mapping, rngs: nnx.Rngs) -> PWCNet:
@@ -219,16 +214,8 @@ def build(config: Mapping, rngs: nnx.Rngs) -> PWCNet:
 
 
 def normalize_config(config: Mapping) -> dict:
-    unknown = set(config) - set(DEFAULT_CONFIG) - {"dtype"}
-    if unknown:
-        raise ValueError(f"unknown pwcnet config keys {sorted(unknown)}; known: {sorted(DEFAULT_CONFIG)}")
-    out = dict(DEFAULT_CONFIG)
-    out.update(config)
-    for k in ("pyramid", "estimator", "context", "dilations"):
-        out[k] = [int(v) for v in out[k]]
-    out["md"] = int(out["md"])
-    if out["head_init"] not in HEAD_INITS:
-        raise ValueError(f"model head_init must be one of {list(HEAD_INITS)}, got {out['head_init']!r}")
+    out = fill_config(config, DEFAULT_CONFIG, lists=("pyramid", "estimator", "context", "dilations"), ints=("md",),
+                      bools=("coords",), head_inits=HEAD_INITS)
     if out["warp"] not in WARPS:
         raise ValueError(f"model warp must be one of {list(WARPS)}, got {out['warp']!r}")
     return out

@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from bridge_jax.models.layers import (Conv, check_input_shape, elu, max_pool_3x3_s2, upsample_nearest2x,
+from bridge_jax.models.coordinates import with_coordinates
+from bridge_jax.models.layers import (Conv, check_input_shape, elu, fill_config, max_pool_3x3_s2, upsample_nearest2x,
                                       upsample_nearest2x_conv3x3)
 
 DEFAULT_CONFIG = {
@@ -38,12 +39,14 @@ DEFAULT_CONFIG = {
     "decoder": [512, 256, 128, 64, 32, 16],
     "subpixel_upconv": "auto",
     "head_init": "torch",
+    "coords": False,
 }
 """Full-size (paper) configuration. `decoder` = output widths of up6..up1. `subpixel_upconv` computes a
 decoder's upsample+conv at low resolution (same maths, 4/9 of the FLOPs): True, False (literal upsample then
 conv) or "auto" (by map size, see SUBPIXEL_MIN_PIXELS). `head_init`: "torch" (upstream: PyTorch's default
 uniform law, like every other layer) or "zeros" (the 2-channel output convs start at zero, so every map
-starts at exactly 0 = the zero-motion solution; see HEAD_PREFIXES)."""
+starts at exactly 0 = the zero-motion solution; see HEAD_PREFIXES). `coords`: append normalised x, y channels
+to the input (conv1 then sees in_channels + 2; not in the paper)."""
 
 HEAD_PREFIXES = ("get_disp",)
 """Top-level parameter names of the output convs (what `head_init="zeros"` zeroes)."""
@@ -128,7 +131,8 @@ class MonodepthResNet(nnx.Module):
         if len(planes) != 4 or len(blocks) != 4 or len(dec) != 6 or min(blocks) < 1:
             raise ValueError(f"resnet_md config needs 4 planes, 4 block counts >= 1 and 6 decoder widths, "
                              f"got planes={planes}, blocks={blocks}, decoder={dec}")
-        self.conv1 = Conv(int(config["in_channels"]), stem, 7, stride=2, rngs=rngs)
+        self.coords = bool(config.get("coords", False))
+        self.conv1 = Conv(int(config["in_channels"]) + (2 if self.coords else 0), stem, 7, stride=2, rngs=rngs)
         in_ch = stem
         for s in range(4):
             stage = {}
@@ -166,7 +170,7 @@ class MonodepthResNet(nnx.Module):
         """Like `__call__`, plus the intermediate activations named as upstream's fixture (`conv1`, `pool1`,
         `layer1..4`, `up6..up1`), for locating a numerical mismatch."""
         check_input_shape(pair, MULTIPLE)
-        skip1, skip2, skip3, skip4, skip5, x = self.encode(pair)
+        skip1, skip2, skip3, skip4, skip5, x = self.encode(with_coordinates(pair) if self.coords else pair)
         acts = {"conv1": skip1, "pool1": skip2, "layer1": skip3, "layer2": skip4, "layer3": skip5, "layer4": x}
         x = acts["up6"] = self.up6(x, skip5)
         x = acts["up5"] = self.up5(x, skip4)
@@ -191,13 +195,4 @@ def build(config: Mapping, rngs: nnx.Rngs) -> MonodepthResNet:
 def normalize_config(config: Mapping) -> dict:
     """Fill defaults and return a JSON-serialisable dict (lists, ints, bools)."""
     base = TINY_CONFIG if config.get("name") == "resnet_md_tiny" else DEFAULT_CONFIG
-    unknown = set(config) - set(base) - {"dtype"}
-    if unknown:
-        raise ValueError(f"unknown resnet_md config keys {sorted(unknown)}; known: {sorted(base)}")
-    out = dict(base)
-    out.update(config)
-    for k in ("planes", "blocks", "decoder"):
-        out[k] = [int(v) for v in out[k]]
-    if out["head_init"] not in HEAD_INITS:
-        raise ValueError(f"model head_init must be one of {list(HEAD_INITS)}, got {out['head_init']!r}")
-    return out
+    return fill_config(config, base, lists=("planes", "blocks", "decoder"), bools=("coords",), head_inits=HEAD_INITS)

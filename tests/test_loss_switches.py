@@ -1,0 +1,189 @@
+"""The training switches beyond the paper (census, finest-scale loss, first-order smoothness, occlusion start
+step, gradient clipping): each changes the loss exactly as defined, on hand-built cases and numpy references."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from bridge_jax import configs, losses, setup, train_step
+from tests.scenes import gt_maps, translating_cycle
+
+H, W = 64, 128
+cycle_loss = jax.jit(losses.cycle_loss, static_argnums=2)
+
+
+def np_census(img, patch=7):
+    """Independent census transform: explicit loops over offsets and pixels, zero outside the image."""
+    r = patch // 2
+    g = 255.0 * (0.2989 * img[..., 0] + 0.5870 * img[..., 1] + 0.1140 * img[..., 2])
+    h, w = g.shape
+    out = np.zeros((h, w, patch * patch))
+    for y in range(h):
+        for x in range(w):
+            k = 0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    yy, xx = y + dy, x + dx
+                    v = g[yy, xx] if 0 <= yy < h and 0 <= xx < w else 0.0
+                    t = v - g[y, x]
+                    out[y, x, k] = t / np.sqrt(0.81 + t * t)
+                    k += 1
+    return out
+
+
+def test_census_transform_matches_numpy_on_a_hand_made_patch():
+    img = np.zeros((6, 7, 3))
+    img[2:4, 3:5] = [0.8, 0.2, 0.1]  # a bright square on black
+    img[0, 0] = [0.1, 0.9, 0.5]
+    got = np.asarray(losses.census_transform(jnp.asarray(img, jnp.float32)))
+    np.testing.assert_allclose(got, np_census(img), atol=1e-5)
+    # centre offset (k = 24) is always 0; a flat black pixel far from the square sees 0 in its whole patch
+    assert np.all(got[..., 24] == 0)
+    g_sq = 255 * (0.2989 * 0.8 + 0.587 * 0.2 + 0.114 * 0.1)
+    assert got[5, 0, 24 - 7 * 2 + 3] == pytest.approx(g_sq / np.sqrt(0.81 + g_sq ** 2), abs=1e-6)  # (3, 3) from (5, 0)
+
+
+def test_soft_hamming_and_robust_penalty():
+    t1 = jnp.asarray([[[0.0, 1.0, -1.0]]])
+    t2 = jnp.asarray([[[0.0, 0.0, 1.0]]])
+    d = np.array([0.0, 1.0, -2.0])
+    want = np.sum(d ** 2 / (0.1 + d ** 2))
+    assert float(losses.soft_hamming_distance(t1, t2)[0, 0, 0]) == pytest.approx(want, rel=1e-6)
+    assert float(losses.robust_penalty(jnp.asarray(0.0))) == pytest.approx(0.01 ** 0.4, rel=1e-6)
+    assert float(losses.robust_penalty(jnp.asarray(-2.0))) == pytest.approx(2.01 ** 0.4, rel=1e-6)
+
+
+def test_census_loss_masks_the_patch_border_and_sees_a_shift():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(size=(20, 24, 3)).astype(np.float32)
+    mask = np.ones((20, 24, 1), np.float32)
+    same = losses.census_loss(jnp.asarray(img), jnp.asarray(img), jnp.asarray(mask)).census
+    # identical images: distance 0 everywhere, penalty 0.01^0.4, normalised over the 14 x 18 interior
+    assert float(same.num / same.den) == pytest.approx(0.01 ** 0.4, rel=1e-5)
+    assert float(same.den) == pytest.approx(14 * 18 / (20 * 24), rel=1e-6)
+    shifted = np.roll(img, 1, axis=1)
+    c = losses.census_loss(jnp.asarray(shifted), jnp.asarray(img), jnp.asarray(mask)).census
+    t1, t2 = np_census(shifted), np_census(img)
+    dist = (np.sum((t1 - t2) ** 2 / (0.1 + (t1 - t2) ** 2), -1) + 0.01) ** 0.4
+    want = dist[3:-3, 3:-3].mean()
+    assert float(c.num / c.den) == pytest.approx(want, rel=1e-4)
+    # brightness change: census is (nearly) invariant, L1 is not
+    bright = np.clip(img * 0.8 + 0.1, 0, 1)
+    cb = losses.census_loss(jnp.asarray(bright), jnp.asarray(img), jnp.asarray(mask)).census
+    assert float(cb.num / cb.den) < 0.5 * want
+
+
+def test_census_switch_at_the_true_shift_is_near_its_floor():
+    cycle, gt = translating_cycle(H, W)
+    maps = gt_maps(gt, H, W)
+    cfg = losses.LossConfig(photometric="census")
+    _, good = cycle_loss(maps, jnp.asarray(cycle), cfg)
+    zero = jax.tree.map(jnp.zeros_like, maps)
+    _, bad = cycle_loss(zero, jnp.asarray(cycle), cfg)
+    assert "census_fwd/0" in good and "ssim_fwd/0" not in good
+    assert float(good["photo_fwd/0"]) == pytest.approx(0.01 ** 0.4, rel=1e-3)  # exact warps: penalty of 0
+    assert float(bad["photo_fwd/0"]) > 3 * float(good["photo_fwd/0"])
+
+
+def _terms(cfg, step=None, maps=None):
+    cycle, gt = translating_cycle(H, W)
+    maps = maps if maps is not None else gt_maps(gt, H, W)
+    noisy = {k: tuple(m + 0.5 * jnp.sin(jnp.arange(m.shape[2]) / 3.0)[None, None, :, None] for m in v)
+             for k, v in maps.items()}  # not exact: occlusion masks and smoothness are not trivial
+    return losses.cycle_loss(noisy, jnp.asarray(cycle), cfg, step=step)
+
+
+def test_finest_only_equals_the_full_resolution_terms_of_the_paper_loss():
+    total_all, t_all = _terms(losses.LossConfig())
+    total_fin, t_fin = _terms(losses.LossConfig(scales="finest"))
+    cfg = losses.LossConfig()
+    want = (t_all["photo_fwd/0"] + t_all["photo_bwd/0"] + cfg.lambda_sm * (t_all["smooth_fwd/0"] + t_all["smooth_bwd/0"])
+            + cfg.lambda_lr * (t_all["lr_fwd/0"] + t_all["lr_bwd/0"]))
+    assert float(total_fin) == pytest.approx(float(want), rel=1e-6)
+    assert "photo_fwd/1" not in t_fin and float(total_all) > float(total_fin)
+
+
+def test_first_order_smoothness_on_a_ramp_and_its_own_weight():
+    img = jnp.zeros((8, 10, 3))
+    x = jnp.arange(10.0)[None, :, None]
+    ramp = jnp.concatenate([jnp.broadcast_to(3.0 * x, (8, 10, 1)), jnp.zeros((8, 10, 1))], -1)
+    # first differences of 3x (scaled by 1/20) on a flat image: 0.15 on channel 0 in x, 0 elsewhere
+    got = float(losses.smoothness_loss(ramp, img, scale=1 / 20, order=1))
+    assert got == pytest.approx((0.15 / 2 + 0.0) / 2, rel=1e-6)
+    assert float(losses.smoothness_loss(ramp, img, order=2)) == pytest.approx(0.0, abs=1e-6)
+    edge = img.at[:, 5:].set(1.0)  # an image edge (mean_c dI = 1) between x = 4 and 5: that step weighs exp(-beta)
+    e = float(losses.smoothness_loss(ramp, edge, beta=10.0, scale=1 / 20, order=1))
+    assert e == pytest.approx((0.15 * (8 + np.exp(-10.0)) / 9 / 2) / 2, rel=1e-5)
+    # order 1 is weighted by lambda_sm1 in the total loss
+    c1 = losses.LossConfig(smoothness_order=1, lambda_sm1=3.0, beta1=5.0)
+    total, t = _terms(c1)
+    rest = sum(t[f"photo_{d}"] for d in ("fwd", "bwd")) + c1.lambda_lr * t["lr"]
+    assert float(total) == pytest.approx(float(rest + 3.0 * (t["smooth_fwd"] + t["smooth_bwd"])), rel=1e-6)
+
+
+def test_no_occlusion_mask_before_the_start_step():
+    start = losses.LossConfig(occlusion_start_step=100)
+    # before the start step the flow pairs are unmasked: the same as an occlusion check that never fires
+    # (alpha1 huge, border band 0, floor 0) with the paper's other settings
+    never = losses.LossConfig(occ_alpha1=1e9, border_ratio=0.0, mask_floor=0.0)
+    _, before = _terms(start, step=jnp.int32(99))
+    _, unmasked = _terms(never)
+    _, after = _terms(start, step=jnp.int32(100))
+    _, paper = _terms(losses.LossConfig())
+    for k in ("photo_fwd", "photo_bwd"):
+        assert float(before[k]) == pytest.approx(float(unmasked[k]), rel=1e-6)
+        assert float(after[k]) == pytest.approx(float(paper[k]), rel=1e-6)
+        assert abs(float(before[k]) - float(after[k])) > 1e-4
+
+
+
+
+def test_gradient_clipping_by_global_norm():
+    grads = {"a": jnp.asarray([3.0, 4.0]), "b": jnp.asarray([12.0])}  # global norm 13
+    params = jax.tree.map(jnp.zeros_like, grads)
+    opt = train_step.OptimizerConfig(lr=1.0, lr_milestones=(), clip_grad_norm=1.3, adam_eps=100.0)
+    tx, _ = train_step.make_optimizer(opt, 10)
+    updates, _ = tx.update(grads, tx.init(params), params)
+    # first Adam step: -lr * m_hat / (sqrt(v_hat) + eps) with m_hat = g_c, v_hat = g_c^2, g_c = g * 1.3 / 13
+    for k, g in grads.items():
+        gc = np.asarray(g) * 0.1
+        np.testing.assert_allclose(updates[k], -gc / (np.abs(gc) + 100.0), rtol=1e-5)
+    off, _ = train_step.make_optimizer(train_step.OptimizerConfig(lr=1.0, lr_milestones=(), adam_eps=100.0), 10)
+    u_off, _ = off.update(grads, off.init(params), params)
+    np.testing.assert_allclose(u_off["b"], -12.0 / 112.0, rtol=1e-5)
+
+
+@pytest.mark.parametrize("item, match", [
+    ("loss.photometric=censsus", r"loss.photometric must be one of \('ssim_l1', 'census'\)"),
+    ("loss.scales=coarse", r"loss.scales must be one of \('all', 'finest'\)"),
+    ("loss.smoothness_order=3", r"loss.smoothness_order must be one of \(1, 2\)"),
+    ("loss.occlusion_start_step=-5", r"loss.occlusion_start_step must be an integer >= 0"),
+    ("clip_grad_norm=-1.0", r"config.clip_grad_norm must be >= 0"),
+])
+def test_unknown_switch_values_are_one_config_error(item, match):
+    c = configs.load("demo:short")
+    configs.override(c, [item])
+    with pytest.raises(setup.ConfigError, match=match):
+        setup.parse(c)
+
+
+def test_train_step_reads_the_step_for_the_occlusion_switch():
+    """The plain step passes state["step"] to the loss: with a start step of 1, step 0 and step 1 of the same
+    params and batch give the unmasked and the masked loss."""
+    from tests.train_helpers import make_step
+    cycle, _ = translating_cycle(H, W)
+    cycles = jnp.asarray(cycle)[None]
+    cfg = losses.LossConfig(occlusion_start_step=1)
+    state, _, net, _, _ = make_step(loss_cfg=cfg, lr=0.0)
+    maps = jax.jit(lambda p: net(p, jax.numpy.asarray(losses.cyc.batch_pair_inputs(cycles))))(state["params"])
+    loss_at = lambda s: float(cycle_loss(maps, cycles, cfg, None, jnp.int32(s))[0])
+    step = train_step.make_train_step(net, cfg, *train_step.make_optimizer(train_step.OptimizerConfig(lr=0.0), 100))
+    s0 = jax.tree.map(jnp.copy, state)
+    _, m0 = step(s0, cycles)
+    s1 = dict(jax.tree.map(jnp.copy, state), step=jnp.int32(1))
+    _, m1 = step(s1, cycles)
+    assert float(m0["loss"]) == pytest.approx(loss_at(0), rel=1e-5)
+    assert float(m1["loss"]) == pytest.approx(loss_at(1), rel=1e-5)
+    assert float(m0["loss"]) != pytest.approx(float(m1["loss"]), rel=1e-4)
