@@ -87,7 +87,7 @@ def forward(params, x, rows, *, net: Network):
 
 
 def loss_and_map_grads(map_parts, cycles, step, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
-    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch at training step `step`."""
+    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch at training step `step` (or None)."""
     count_trace("micro/loss")
 
     def objective(parts):
@@ -151,7 +151,7 @@ class MicroBatchedStep:
         yield "split", xs
         maps = [self._forward(params, x, self._rows(i)) for i, x in enumerate(xs)]
         yield "forward", maps
-        loss, terms, dmaps = self._loss(tuple(maps), cycles, state.get("step", jnp.zeros((), jnp.int32)))
+        loss, terms, dmaps = self._loss(tuple(maps), cycles, state.get("step"))
         del maps
         yield "loss", (loss, terms, dmaps)
         acc = self._zeros(params)
@@ -161,8 +161,8 @@ class MicroBatchedStep:
         yield "update", self._update(state, acc, loss, terms)
 
     def loss_and_grads(self, params, cycles, step=None):
-        """((loss, terms), grads) of the batch at training step `step` (None = 0), computed maps-first (the step
-        without its update)."""
+        """((loss, terms), grads) of the batch at training step `step` (None: as `losses.cycle_loss` reads None, after
+        any occlusion start step), computed maps-first (the step without its update)."""
         out = {}
         state = {"params": params} if step is None else {"params": params, "step": jnp.asarray(step, jnp.int32)}
         for name, value in self.phases(state, cycles):

@@ -187,3 +187,19 @@ def test_train_step_reads_the_step_for_the_occlusion_switch():
     assert float(m0["loss"]) == pytest.approx(loss_at(0), rel=1e-5)
     assert float(m1["loss"]) == pytest.approx(loss_at(1), rel=1e-5)
     assert float(m0["loss"]) != pytest.approx(float(m1["loss"]), rel=1e-4)
+
+
+def test_micro_batched_step_reads_the_step_like_the_plain_step():
+    from tests.train_helpers import make_step
+    cycle, _ = translating_cycle(H, W)
+    cycles = jnp.asarray(np.stack([cycle, cycle]))
+    cfg = losses.LossConfig(occlusion_start_step=5)
+    state, micro, net, _, _ = make_step(micro_batch=4, loss_cfg=cfg)
+    plain = jax.jit(lambda p, c, s: train_step.loss_and_grads(p, c, net=net, loss_cfg=cfg, step=s))
+    got = {}
+    for s in (None, 0, 7):  # None = after the start step, as losses.cycle_loss reads it
+        (lm, _), _ = micro.loss_and_grads(state["params"], cycles, s)
+        (lp, _), _ = plain(state["params"], cycles, None if s is None else jnp.int32(s))
+        assert float(lm) == pytest.approx(float(lp), rel=1e-5)
+        got[s] = float(lm)
+    assert got[None] == pytest.approx(got[7], rel=1e-6) and got[0] != pytest.approx(got[7], rel=1e-4)
