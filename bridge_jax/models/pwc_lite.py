@@ -38,7 +38,8 @@ from flax import nnx
 
 from bridge_jax import geometry
 from bridge_jax.models.coordinates import coordinate_channels, with_coordinates
-from bridge_jax.models.layers import Conv, ConvLeaky, fill_config, leaky_relu, pixel_and_fraction_maps
+from bridge_jax.models.layers import (Conv, ConvLeaky, check_input_shape, fill_config, leaky_relu,
+                                      pixel_and_fraction_maps)
 from bridge_jax.models.pwcnet import correlation
 
 DEFAULT_CONFIG = {
@@ -161,11 +162,8 @@ class PWCLite(nnx.Module):
         return feats
 
     def __call__(self, pair: jax.Array) -> dict[str, tuple[jax.Array, ...]]:
-        if pair.ndim != 4 or pair.shape[-1] != 6:
-            raise ValueError(f"model input must be (N, H, W, 6) (two RGB images concatenated), got {pair.shape}")
+        check_input_shape(pair, MULTIPLE)
         n, h, w, _ = pair.shape
-        if h % MULTIPLE or w % MULTIPLE:
-            raise ValueError(f"model input height and width must be multiples of {MULTIPLE}, got {h}x{w}")
         levels = pyramid_levels(h, w, self.max_levels)
         images = jnp.concatenate([pair[..., :3], pair[..., 3:]], axis=0)
         feats = self.pyramid(with_coordinates(images) if self.coords else images, levels)
