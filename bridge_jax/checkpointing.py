@@ -6,7 +6,12 @@ Layouts:
 - **training workdir**: `WORKDIR/model.json`, `WORKDIR/config.json`, `WORKDIR/checkpoints/<step>/` written by an
   orbax CheckpointManager with items `state` = {"params", "opt_state", "step", "rng"} and `data`.
 
-`load_params(path)` accepts a params-only dir, a training workdir (latest step) or a step dir.
+`load_params(path)` accepts a params-only dir, a training workdir (newest readable step) or a step dir.
+
+Broken checkpoints (truncated or garbled files, an empty step dir, a NaN train state) are never deleted: the
+readers fall back to the newest step that reads completely and say which step they skipped and why
+(`CheckpointFallbackWarning`); `TrainCheckpointer.restore_latest` moves the skipped step dirs aside to
+`checkpoints/<step>.broken-<n>` before its next save writes (see there why then).
 """
 from __future__ import annotations
 
@@ -14,8 +19,11 @@ import contextlib
 import json
 import logging
 import os
+import sys
+import time
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +38,99 @@ CONFIG_JSON = "config.json"  # a training workdir's config (beside its model.jso
 PARAMS_DIR = "params"
 CHECKPOINTS_DIR = "checkpoints"
 STATE_ITEM = "state"
+BROKEN_SUFFIX = ".broken-"  # checkpoints/<step>.broken-<n>: a broken step dir moved aside (never deleted)
+
+
+class CheckpointFallbackWarning(UserWarning):
+    """A checkpoint step could not be used (unreadable, incomplete, not finite) and an older one was taken."""
+
+
+def _reason(error: BaseException, limit: int = 300) -> str:
+    """`Type: first line of the message`, capped (orbax/tensorstore messages embed whole JSON specs).
+
+    orbax wraps a failed array read in "Encountered error while reading array index ... TensorStore
+    details: <spec>", which says neither file nor problem: its cause (tensorstore's error) does."""
+    while str(error).startswith("Encountered error while reading array index") and error.__cause__ is not None:
+        error = error.__cause__
+    text = str(error).strip()
+    line = f"{type(error).__name__}: {text.splitlines()[0]}" if text else type(error).__name__
+    return line if len(line) <= limit else line[:limit - 3] + "..."
+
+
+def _is_failed_read_noise(args) -> bool:
+    """Exceptions "ignored" in tensorstore/orbax threads after a restore failed: the other arrays' reads
+    finish after orbax closed its event loop ("Event loop is closed" in asyncio's call_soon_threadsafe) or
+    fail on the same broken file (orbax's "Encountered error while reading array index"). The failure
+    itself has been raised (and reported) already; these would only print stray tracebacks later."""
+    import traceback
+    if args.exc_type is RuntimeError and str(args.exc_value) == "Event loop is closed":
+        frames = traceback.extract_tb(args.exc_traceback)
+        return bool(frames) and frames[-1].name == "_check_closed" and "asyncio" in frames[-1].filename
+    return str(args.exc_value).startswith("Encountered error while reading array index")
+
+
+_noise_filter_installed = False
+
+
+def _quiet_failed_read_noise() -> None:
+    """Installs (once, after the first failed checkpoint read) a sys.unraisablehook dropping only the
+    `_is_failed_read_noise` leftovers; everything else goes to the hook that was there before."""
+    global _noise_filter_installed
+    if _noise_filter_installed:
+        return
+    previous = sys.unraisablehook
+
+    def hook(args):
+        if not _is_failed_read_noise(args):
+            previous(args)
+
+    sys.unraisablehook = hook
+    _noise_filter_installed = True
+
+
+# ==========================================================================================================
+# Finite checks
+# ==========================================================================================================
+
+def _nonfinite_count(x: Any) -> int:
+    """Number of NaN/Inf entries of one leaf; 0 for integer, bool and PRNG-key leaves."""
+    if isinstance(x, jax.Array):
+        if not jnp.issubdtype(x.dtype, jnp.inexact):
+            return 0
+        # on device: also works for arrays sharded over several hosts (the sum comes back replicated)
+        return int(jnp.sum(~jnp.isfinite(x)))
+    a = np.asarray(x)
+    if not jnp.issubdtype(a.dtype, jnp.inexact):  # jnp's issubdtype also knows ml_dtypes' bfloat16
+        return 0
+    return int(np.count_nonzero(~np.isfinite(a)))
+
+
+def first_nonfinite(tree: Any) -> tuple[str, int] | None:
+    """`(leaf path, count)` of the first leaf (in tree order) holding NaN/Inf, else None.
+
+    The path is the key path joined by "/", e.g. `encoder/conv1/kernel` (sequence indices and named-tuple
+    fields appear as their index / name: `0/mu/conv1/kernel` for an optax state)."""
+    for kp, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        n = _nonfinite_count(leaf)
+        if n:
+            return jax.tree_util.keystr(kp, simple=True, separator="/"), n
+    return None
+
+
+def check_finite_params(params: Any, what: str) -> None:
+    """Refuse params holding NaN/Inf: ValueError naming the first bad leaf in tree order.
+
+    Args:
+      params: a pytree of arrays (numpy or jax, any shapes; non-float leaves are ignored).
+      what: names the source in the message (a path, `config.init_from=...`).
+    Raises:
+      ValueError: "<what>: parameter <path/to/leaf> has N non-finite values (NaN/Inf); ...".
+    """
+    bad = first_nonfinite(params)
+    if bad is not None:
+        leaf, n = bad
+        raise ValueError(f"{what}: parameter {leaf} has {n} non-finite values (NaN/Inf); these weights are unusable "
+                         f"(the run that wrote them diverged, or the file is corrupt)")
 
 
 # ==========================================================================================================
@@ -81,7 +182,8 @@ class _DropItemDirMetadataWarning(logging.Filter):
     layouts the warning is noise that every `predict` / `evaluate` on a training workdir would print."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("Metadata file does not exist")
+        # "Failed to get item metadata ...": a garbled _METADATA, which the reader's own error then names
+        return not str(record.msg).startswith(("Metadata file does not exist", "Failed to get item metadata"))
 
 
 @contextlib.contextmanager
@@ -98,7 +200,9 @@ def _restore_tree(path: Path, subtree: str | None = None) -> Any:
     """Restore an orbax PyTree checkpoint at `path` as numpy arrays (optionally only the top-level `subtree`)."""
     with _quiet_item_dir_metadata(), ocp.PyTreeCheckpointer() as ckptr:
         meta = ckptr.metadata(path)
-        tree = meta.item_metadata.tree if hasattr(meta, "item_metadata") else meta.tree
+        tree = getattr(meta.item_metadata if hasattr(meta, "item_metadata") else meta, "tree", None)
+        if tree is None:  # orbax logs a warning and returns no item metadata for a missing / garbled _METADATA
+            raise ValueError(f"{path}: unreadable checkpoint metadata (a file in it is missing, truncated or garbled)")
         if subtree is not None:
             if not isinstance(tree, dict) or subtree not in tree:
                 keys = list(tree) if isinstance(tree, dict) else type(tree).__name__
@@ -115,15 +219,28 @@ def jax_tree_map_meta(fn, tree):
     return jax.tree.map(fn, tree, is_leaf=lambda x: not isinstance(x, (dict, list, tuple)))
 
 
+def _step_dirs(ckpt_dir: Path) -> list[Path]:
+    """`checkpoints/<step>` dirs, newest first (moved-aside `<step>.broken-<n>` and orbax tmp dirs excluded)."""
+    try:
+        entries = list(ckpt_dir.iterdir())
+    except FileNotFoundError:
+        return []
+    steps = [(int(p.name), p) for p in entries if p.name.isdigit() and p.is_dir()]
+    return [p for _, p in sorted(steps, reverse=True)]
+
+
 def _latest_step(ckpt_dir: Path) -> Path:
-    steps = sorted((int(p.name), p) for p in ckpt_dir.iterdir() if p.is_dir() and p.name.isdigit())
+    steps = _step_dirs(ckpt_dir)
     if not steps:
         raise ValueError(f"{ckpt_dir}: no step directories (expected {CHECKPOINTS_DIR}/<step>/)")
-    return steps[-1][1]
+    return steps[0]
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]:
-    """Find `(model.json path, orbax tree path, subtree)` for any accepted checkpoint layout."""
+    """Find `(model.json path, orbax tree path, subtree)` for any accepted checkpoint layout.
+
+    For a training workdir the tree path is the newest step's, readable or not: `load_params` is the reader
+    that skips broken steps; this is for callers that only need the model.json beside it."""
     p = Path(path).absolute()
     if not p.exists():
         raise ValueError(f"checkpoint {path} does not exist")
@@ -138,15 +255,107 @@ def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]
                      f"a training workdir (model.json + checkpoints/<step>/) or a step dir checkpoints/<step>")
 
 
-def load_params(path: str | os.PathLike) -> tuple[dict, dict]:
-    """Load `(model_cfg, params)` from a params-only dir, a training workdir (latest step) or a step dir.
+# How often load_params re-lists a live workdir whose steps changed under it (a running training deletes old
+# steps, keep-K), and how long it lets a deletion in progress finish before re-listing.
+LOAD_ATTEMPTS = 3
+_SETTLE_S = 0.5
+
+
+def _read_params(tree_path: Path, subtree: str | None, want: Any, model_name: str, require_finite: bool) -> Any:
+    """Params (numpy) of one orbax tree, checked against the model's shapes `want` (a tree of shape tuples).
+
+    Raises ValueError(reason) for anything that makes them unusable; FileNotFoundError passes through (the
+    caller tells a step deleted under it from a broken one)."""
+    if not tree_path.is_dir():
+        raise ValueError(f"missing {tree_path.name}/ (an incomplete checkpoint)")
+    try:
+        params = _restore_tree(tree_path, subtree)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # orbax / tensorstore / json raise a variety of types on garbled data
+        _quiet_failed_read_noise()
+        own = f"{tree_path}: "  # _restore_tree's own errors start with the path: not twice in the message
+        detail = str(e)[len(own):] if type(e) is ValueError and str(e).startswith(own) else _reason(e)
+        raise ValueError(f"cannot read {tree_path} ({detail})") from e
+    try:
+        got = jax.tree.map(lambda a: tuple(np.shape(a)), params)
+    except Exception:
+        got = None
+    if got != want:
+        raise ValueError(f"params do not match model {model_name} (different tree structure or shapes)")
+    if require_finite:
+        bad = first_nonfinite(params)
+        if bad is not None:
+            raise ValueError(f"params not finite: {bad[0]} has {bad[1]} non-finite values (NaN/Inf)")
+    return params
+
+
+def _read_newest_step(workdir: Path, want: Any, model_name: str, require_finite: bool) -> tuple[Path, Any]:
+    """`(step dir, params)` of the newest step of `workdir/checkpoints` whose params read completely.
+
+    Resolving the newest step and reading it are one unit: a training run may delete steps (keep-K) between
+    the two. A step that disappeared while being read, or a listing that changed while steps failed, makes
+    it list again (`LOAD_ATTEMPTS` times); a step that is still there and fails is broken: it is skipped with
+    a CheckpointFallbackWarning (never deleted) and the next older one is tried.
+    """
+    ckpt_dir = workdir / CHECKPOINTS_DIR
+    retried: set[Path] = set()  # steps that lost a file while read once: a second time, they are broken
+    for _ in range(LOAD_ATTEMPTS):
+        listing = _step_dirs(ckpt_dir)
+        if not listing:
+            raise ValueError(f"{ckpt_dir}: no step directories (expected {CHECKPOINTS_DIR}/<step>/)")
+        broken: list[tuple[Path, str]] = []
+        relist = False
+        found = None
+        for step_dir in listing:
+            try:
+                found = _read_params(step_dir / STATE_ITEM, "params", want, model_name, require_finite)
+                break
+            except (ValueError, FileNotFoundError) as e:
+                if not step_dir.is_dir() or (isinstance(e, FileNotFoundError) and step_dir not in retried):
+                    # deleted (or being deleted) while we read it: keep-K of a live run. The newest step may be
+                    # another one now, so list again rather than fall back to an older step.
+                    retried.add(step_dir)
+                    relist = True
+                    break
+                broken.append((step_dir, str(e) if isinstance(e, ValueError) else _reason(e)))
+        if relist:
+            time.sleep(_SETTLE_S)  # let a deletion in progress finish before listing again
+            continue
+        if broken:
+            time.sleep(_SETTLE_S)  # a deletion in progress looks like a broken step until it completes
+            if _step_dirs(ckpt_dir) != listing:
+                continue
+        if found is None:
+            newest, why = broken[0]
+            raise ValueError(f"{ckpt_dir}: no readable checkpoint step; the newest, {newest.name}, is broken ({why})"
+                             + (f"; {len(broken) - 1} older step(s) are broken too" if len(broken) > 1 else ""))
+        for bad_dir, why in broken:
+            warnings.warn(f"{bad_dir}: skipped a broken checkpoint ({why}); using the older step "
+                          f"{step_dir.name} (the broken directory is left as it is)", CheckpointFallbackWarning,
+                          stacklevel=3)
+        return step_dir, found
+    raise ValueError(f"{ckpt_dir}: checkpoint steps kept changing (deleted while being read) in {LOAD_ATTEMPTS} "
+                     "attempts; try again, or read a step dir that the training run keeps")
+
+
+def load_params(path: str | os.PathLike, *, require_finite: bool = False) -> tuple[dict, dict]:
+    """Load `(model_cfg, params)` from a params-only dir, a training workdir (newest readable step) or a step dir.
 
     Params come back as a nested dict of float32 `jax.Array`s and are checked against the model's shapes.
     A model.json with `"separate_networks": true` (separate stereo / flow networks) gives params
     `{"stereo": ..., "flow": ...}` and that key is kept in the returned config.
+
+    A training workdir: broken steps (unreadable, incomplete, wrong shapes; with `require_finite` also NaN/Inf
+    params) are skipped with a `CheckpointFallbackWarning` naming each, newest first, and the newest step
+    that reads completely is used; steps that a running training deletes meanwhile are handled (re-listed).
+    Params holding NaN/Inf are returned as they are unless `require_finite` (evaluating a diverged run is a
+    legitimate use; `check_finite_params` is the check).
     Raises:
-      ValueError naming the path when it is missing, of an unknown layout, or garbled.
+      ValueError naming the path when it is missing, of an unknown layout, or garbled (for a workdir: when no
+      step reads, naming the newest step's problem); with `require_finite`, when the params are not finite.
     """
+    p = Path(path).absolute()
     model_json, tree_path, subtree = resolve_checkpoint(path)
     if not model_json.is_file():
         raise ValueError(f"{path}: missing {model_json}")
@@ -156,25 +365,21 @@ def load_params(path: str | os.PathLike) -> tuple[dict, dict]:
         cfg = models.model_config(cfg)
     except ValueError as e:
         raise ValueError(f"{model_json}: {e}") from e
-    if not tree_path.is_dir():
-        raise ValueError(f"{path}: missing {tree_path}")
-    try:
-        params = _restore_tree(tree_path, subtree)
-    except ValueError:
-        raise
-    except Exception as e:  # orbax raises a variety of types on garbled data
-        raise ValueError(f"{path}: cannot read checkpoint at {tree_path} ({type(e).__name__}: {e})") from e
     _, abstract = models.abstract_init(cfg)
     if separate:
         abstract = {"stereo": abstract, "flow": abstract}
-        cfg["separate_networks"] = True
     want = jax.tree.map(lambda a: tuple(a.shape), abstract)
-    try:
-        got = jax.tree.map(lambda a: tuple(np.shape(a)), params)
-    except Exception:
-        got = None
-    if got != want:
-        raise ValueError(f"{path}: params do not match model {cfg['name']} (different tree structure or shapes)")
+    if subtree is not None and (p / CHECKPOINTS_DIR).is_dir():  # a training workdir (not one step dir)
+        _, params = _read_newest_step(p, want, cfg["name"], require_finite)
+    else:
+        try:
+            params = _read_params(tree_path, subtree, want, cfg["name"], require_finite)
+        except FileNotFoundError as e:
+            raise ValueError(f"{path}: cannot read checkpoint at {tree_path} ({_reason(e)})") from e
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from e
+    if separate:
+        cfg["separate_networks"] = True
     return cfg, jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)
 
 
@@ -208,6 +413,15 @@ class _IteratorSnapshot:
         pass
 
 
+class Restored(NamedTuple):
+    """What `TrainCheckpointer.restore_latest` found: the newest step that reads completely."""
+
+    state: Any  # the train state, in the structure / shardings of the abstract state asked for
+    data_state: dict  # the grain iterator state saved with it ({} if none was saved)
+    step: int  # the step number (the name of its dir checkpoints/<step>)
+    broken: list[tuple[int, str]]  # newer steps skipped, newest first: (step, reason)
+
+
 class TrainCheckpointer:
     """Thin layer over orbax CheckpointManager for WORKDIR/checkpoints/<step>/.
 
@@ -215,6 +429,12 @@ class TrainCheckpointer:
     StandardCheckpointHandler, sharded arrays welcome) and `data` (the grain iterator state), so a restart
     resumes the exact batch sequence. Saves are asynchronous (the device->host copy happens in `save`, so the
     state may be donated right after); `wait()` blocks until the last one is on disk; the last `keep` are kept.
+
+    Broken steps: `restore_latest` skips them (newest first) and remembers them; the next due `save` first
+    moves each of them aside to `checkpoints/<step>.broken-<n>` (renamed, never deleted). Not earlier, so
+    restoring alone never changes the workdir; not later, because left in place a broken step would
+    collide with the step number a resumed run saves next (orbax refuses an existing step), count as the
+    "latest" step, and be deleted by orbax's keep-K clean-up like any old step (seen: gone after 3 saves).
     """
 
     def __init__(self, workdir: str | os.PathLike, *, save_every: int = 1000, keep: int | None = 3,
@@ -227,30 +447,127 @@ class TrainCheckpointer:
         self.manager = ocp.CheckpointManager(
             self.directory, options=options, item_names=(STATE_ITEM, DATA_ITEM),
             item_handlers={STATE_ITEM: ocp.StandardCheckpointHandler(), DATA_ITEM: grain_ckpt.CheckpointHandler()})
+        self.broken: dict[int, str] = {}  # step -> reason, found by restore_latest and not yet moved aside
 
     def latest_step(self) -> int | None:
-        return self.manager.latest_step()
+        """The newest step saved, known-broken steps excluded (the last good checkpoint)."""
+        steps = [s for s in self.manager.all_steps() if s not in self.broken]
+        return max(steps) if steps else None
 
     def all_steps(self) -> list[int]:
         return list(self.manager.all_steps())
 
     def save(self, step: int, state: Any, data_state: dict | None = None, *, force: bool = False) -> bool:
-        """Starts saving step `step` if due (`step % save_every == 0`) or forced; False if not saved."""
+        """Starts saving step `step` if due (`step % save_every == 0`) or forced; False if not saved.
+
+        Broken steps found by `restore_latest` are moved aside first (see the class doc), as is a dir
+        `checkpoints/<step>` that orbax does not list as a checkpoint (it would collide with this save)."""
         step = int(step)
         due = force or (self.save_every > 0 and step % self.save_every == 0)
-        if not due or step in self.manager.all_steps():
+        if not due:
+            return False
+        step_dir = Path(self.directory) / str(step)
+        if step_dir.exists() and step not in self.manager.all_steps() and step not in self.broken:
+            self.broken[step] = "not a checkpoint orbax recognises"
+        if self.broken:
+            self._move_broken_aside()
+        if step in self.manager.all_steps():
             return False
         snapshot = _IteratorSnapshot(json.dumps(data_state if data_state is not None else {}).encode())
         return bool(self.manager.save(step, args=ocp.args.Composite(
             **{STATE_ITEM: ocp.args.StandardSave(state), DATA_ITEM: grain_ckpt.CheckpointSave(snapshot)}),
             force=True))
 
+    def _move_broken_aside(self) -> None:
+        """Renames every step dir in `self.broken` to `<step>.broken-<n>` (first free n), with a warning each."""
+        self.manager.wait_until_finished()  # no async save or keep-K clean-up may run while dirs move
+        if jax.process_index() == 0:  # one process renames; the others wait at the barrier below
+            for step, why in sorted(self.broken.items()):
+                src = Path(self.directory) / str(step)
+                if not src.exists():
+                    continue
+                n = 1
+                while (dst := src.with_name(f"{step}{BROKEN_SUFFIX}{n}")).exists():
+                    n += 1
+                os.rename(src, dst)
+                warnings.warn(f"{src}: broken checkpoint ({why}) moved aside to {dst.name} before saving over its "
+                              "step number", CheckpointFallbackWarning, stacklevel=3)
+        if jax.process_count() > 1:
+            ocp.multihost.sync_global_processes("bridge_jax_move_broken_checkpoints")
+        self.broken = {}
+        self.manager.reload()
+
     def restore(self, step: int, abstract_state: Any) -> tuple[Any, dict]:
-        """Restores step `step` into the structure/shardings of `abstract_state` -> (state, data_state dict)."""
+        """Restores step `step` into the structure/shardings of `abstract_state` -> (state, data_state dict).
+
+        Raises whatever orbax raises on unreadable data; ValueError if the data state is not a JSON object."""
         holder = _IteratorSnapshot()
         out = self.manager.restore(int(step), args=ocp.args.Composite(
             **{STATE_ITEM: ocp.args.StandardRestore(abstract_state), DATA_ITEM: grain_ckpt.CheckpointRestore(holder)}))
-        return out[STATE_ITEM], (json.loads(holder.state.decode()) if holder.state else {})
+        data_state = json.loads(holder.state.decode()) if holder.state else {}
+        if not isinstance(data_state, dict):
+            raise ValueError(f"data iterator state is a JSON {type(data_state).__name__}, not an object")
+        return out[STATE_ITEM], data_state
+
+    def _unusable(self, step: int, abstract_state: Any) -> tuple[str, Any, dict]:
+        """`(reason, state, data_state)` for one step; reason "" when it restored completely and is finite."""
+        step_dir = Path(self.directory) / str(step)
+        if not step_dir.is_dir():
+            return "not a directory", None, {}
+        if not any(step_dir.iterdir()):
+            return "empty directory", None, {}
+        missing = [item for item in (STATE_ITEM, DATA_ITEM) if not (step_dir / item).is_dir()]
+        if missing:  # checked here: orbax's own message for it is a KeyError listing "available items"
+            return f"incomplete: no {' / '.join(missing)} item", None, {}
+        try:
+            state, data_state = self.restore(step, abstract_state)
+        except Exception as e:  # orbax / tensorstore / json raise many types on truncated or garbled files
+            _quiet_failed_read_noise()
+            return _reason(e), None, {}
+        # Resuming into NaN/Inf is useless (every step would be skipped): such a state counts as broken.
+        parts = ([("params", state["params"])] + [(k, v) for k, v in state.items() if k != "params"]
+                 if isinstance(state, dict) and "params" in state else [("state", state)])
+        for name, tree in parts:
+            bad = first_nonfinite(tree)
+            if bad is not None:
+                return f"{name} not finite: {bad[0]} has {bad[1]} non-finite values (NaN/Inf)", None, {}
+        return "", state, data_state
+
+    def restore_latest(self, abstract_state: Any, *, warn: bool = True) -> Restored | None:
+        """The newest step that restores completely (state AND data item, finite state), or None if no step exists.
+
+        Steps are tried newest first: those orbax lists and any other `checkpoints/<step>` dir (orbax may
+        skip an empty or partial one). Each broken step (unreadable, truncated or garbled file, empty or
+        incomplete dir, NaN/Inf in the state) gets a CheckpointFallbackWarning naming its dir and the reason
+        (first line of the error), and is returned in `broken`; nothing is deleted (the next `save` moves
+        them aside, see the class doc).
+        Args:
+          abstract_state: the train state's structure, e.g. a tree of `jax.ShapeDtypeStruct` with shardings.
+          warn: emit the warnings (e.g. `warn=is_main`: every process finds the same broken steps).
+        Raises:
+          ValueError naming the checkpoints dir and the newest step's problem when no step is usable.
+        """
+        on_disk = {int(p.name) for p in _step_dirs(Path(self.directory))}
+        steps = sorted(set(self.manager.all_steps()) | on_disk, reverse=True)
+        if not steps:
+            return None
+        broken: list[tuple[int, str]] = []
+        for step in steps:
+            why, state, data_state = self._unusable(step, abstract_state)
+            if not why:
+                break
+            broken.append((step, why))
+        else:
+            more = f"; the {len(broken) - 1} older step(s) are broken too" if len(broken) > 1 else ""
+            raise ValueError(f"{self.directory}: no usable checkpoint; the newest, step {steps[0]}, is broken "
+                             f"({broken[0][1]}){more}. Nothing was changed: move the broken step dirs away to "
+                             "start this workdir afresh, or train in a new workdir")
+        for bad, why in broken if warn else []:
+            warnings.warn(f"{self.directory}/{bad}: skipped a broken checkpoint ({why}); resuming from step {step} "
+                          f"(the directory is kept, moved aside to {bad}{BROKEN_SUFFIX}<n> at the next save)",
+                          CheckpointFallbackWarning, stacklevel=2)
+        self.broken = dict(broken)
+        return Restored(state, data_state, step, broken)
 
     def wait(self) -> None:
         self.manager.wait_until_finished()

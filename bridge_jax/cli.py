@@ -1,9 +1,58 @@
-"""What the command-line entry points share: option parsing helpers and the one-line error report."""
+"""What the command-line entry points share: the parser with the full module docstring as its help epilog,
+option parsing helpers, and the one-line error report (tracebacks only with --debug or BRIDGE_JAX_DEBUG=1)."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import textwrap
+import warnings
+
+DEBUG_ENV = "BRIDGE_JAX_DEBUG"
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the docstring's layout (examples, output trees) and appends "(default: ...)" to every option that
+    has a default worth showing."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        # on/off flags (nargs=0) say what they do; "(default: True)" on a --no-x flag would only confuse
+        if ("%(default)" in text or action.default in (None, False, argparse.SUPPRESS) or not action.option_strings
+                or action.nargs == 0):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _one_line_warning(message, category, filename, lineno, line=None):  # noqa: ARG001
+    if category.__module__.startswith("bridge_jax"):
+        return f"warning: {message}\n"
+    return _default_formatwarning(message, category, filename, lineno, line)
+
+
+_default_formatwarning = warnings.formatwarning
+
+
+def make_parser(prog: str, doc: str, **kwargs) -> argparse.ArgumentParser:
+    """An ArgumentParser for `python -m <prog>`: the first paragraph of `doc` (the module docstring) as its
+    description, the rest of it (examples, output layout) as the epilog of `--help`, defaults shown. Also makes
+    bridge_jax's own warnings (a broken checkpoint skipped, ...) print as one `warning: ...` line."""
+    warnings.formatwarning = _one_line_warning
+    doc = textwrap.dedent(doc or "").strip("\n")
+    first, _, rest = doc.partition("\n\n")
+    return argparse.ArgumentParser(prog=f"python -m {prog}", description=first.strip(),
+                                   epilog=textwrap.dedent(rest).strip("\n") or None, formatter_class=HelpFormatter,
+                                   **kwargs)
+
+
+def add_debug_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--debug", action="store_true",
+                        help=f"show the full traceback of an error (also: environment variable {DEBUG_ENV}=1)")
+
+
+def debug_enabled(args=None) -> bool:
+    return bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -17,9 +66,14 @@ def parse_size(text: str) -> tuple[int, int]:
     return h, w
 
 
-def report_error(error: BaseException, code: int = 2) -> int:
+def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
-    line, never a traceback)."""
+    line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""
+    if debug or (debug is None and debug_enabled()):
+        import traceback
+        traceback.print_exception(error, file=sys.stderr)
     text = str(error).strip()
+    if isinstance(error, OSError) and error.filename and error.strerror:
+        text = f"{error.filename}: {error.strerror}"
     print(f"error: {text.splitlines()[0] if text else type(error).__name__}", file=sys.stderr)
     return code

@@ -1,6 +1,12 @@
 """Convert an upstream BridgeDepthFlow PyTorch checkpoint (`.pth`) into a bridge_jax params checkpoint.
 
+Example:
+
     python -m bridge_jax.convert --from monodepth_ver_a.pth --out checkpoints/ver_a
+    python -m bridge_jax.predict --checkpoint checkpoints/ver_a lt.png rt.png lt1.png rt1.png --out out/
+
+Output: `OUT/model.json` (the model config) + `OUT/params/` (orbax), the params-only layout that evaluate,
+predict, export and `config.init_from` read.
 
 Accepts a bare `state_dict` (as `torch.save(net.state_dict())`) or an upstream epoch checkpoint (a dict with
 `state_dict`, `optimizer`, `scheduler`, `epoch`), in PyTorch's zip format (torch >= 1.6) or its legacy
@@ -13,12 +19,12 @@ into an inert placeholder, so no code from the file is executed and PyTorch need
 
 Conversion is all-or-nothing: every expected tensor must be present with the right shape and no
 unexpected tensor may remain; otherwise the missing / unexpected / mismatched keys are reported by name and
-nothing is written. Conv weights go OIHW -> HWIO (permute 2, 3, 1, 0); transposed-conv weights
+nothing is written. Weights holding NaN/Inf are refused the same way (the error names the first such
+parameter). Conv weights go OIHW -> HWIO (permute 2, 3, 1, 0); transposed-conv weights
 (in, out, kh, kw) -> (kh, kw, in, out).
 """
 from __future__ import annotations
 
-import argparse
 import io
 import pickle
 import struct
@@ -32,7 +38,7 @@ import jax
 import ml_dtypes
 import numpy as np
 
-from bridge_jax import checkpointing, models
+from bridge_jax import checkpointing, cli, models
 
 # --------------------------------------------------------------------------------------------------------
 # Reading .pth files without torch (restricted unpickler)
@@ -412,29 +418,49 @@ def convert_state_dict(state_dict: dict[str, np.ndarray], model_cfg: dict | None
 
 
 def convert(src: str | Path, out: str | Path, *, model: str | None = None, overwrite: bool = False) -> dict:
-    """Read `src` (.pth), convert, and write a params checkpoint to `out`. Returns a summary dict."""
+    """Read `src` (.pth), convert, and write a params checkpoint to `out`. Returns a summary dict.
 
-    sd = load_state_dict(src)
-    cfg = infer_model_config(sd, model)
-    cfg, params = convert_state_dict(sd, cfg)
+    All-or-nothing: unreadable files, key / shape mismatches and non-finite weights raise a ValueError
+    naming `src` (and the keys or the parameter) before anything is written.
+    """
+    try:
+        sd = load_state_dict(src)
+        cfg = infer_model_config(sd, model)
+        cfg, params = convert_state_dict(sd, cfg)
+        # NaN/Inf upstream weights would only turn every prediction and every fine-tuning step into NaN
+        checkpointing.check_finite_params(params, str(src))
+    except ValueError as e:
+        if str(src) in str(e):
+            raise
+        cls = type(e) if isinstance(e, (CheckpointFormatError, ConversionError)) else ValueError
+        raise cls(f"{src}: {e}") from e  # every error line names the file it is about
     checkpointing.save_params(out, params, cfg, overwrite=overwrite)
     return {"model": cfg["name"], "tensors": len(sd), "params": models.param_count(params), "out": str(out)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bridge_jax.convert", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--from", dest="src", required=True, help="upstream .pth checkpoint (state dict or epoch dict)")
-    ap.add_argument("--out", required=True, help="output bridge_jax params checkpoint directory")
+def build_parser():
+    """The `python -m bridge_jax.convert` argument parser (help epilog: this module's docstring)."""
+    ap = cli.make_parser("bridge_jax.convert", __doc__)
+    ap.add_argument("--from", dest="src", required=True, metavar="PTH",
+                    help="upstream .pth checkpoint: a bare state dict or an upstream epoch dict with 'state_dict'")
+    ap.add_argument("--out", required=True, metavar="DIR",
+                    help="output bridge_jax params checkpoint directory (model.json + params/); must not exist "
+                         "unless --overwrite")
     ap.add_argument("--model", choices=["resnet_md", "pwcnet"], default=None,
-                    help="model type (default: detected from the key names)")
-    ap.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
-    args = ap.parse_args(argv)
+                    help="model type; when omitted it is detected from the key names (resnet_md widths and depths "
+                         "are read off the shapes either way)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace --out if it exists (the old directory is replaced only once the new one is complete)")
+    cli.add_debug_flag(ap)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         summary = convert(args.src, args.out, model=args.model, overwrite=args.overwrite)
-    except (ValueError, FileExistsError, OSError) as e:
-        msg = str(e).replace("\n", " ")
-        print(f"error: {args.src}: {msg}" if str(args.src) not in msg else f"error: {msg}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as e:  # FileExistsError is an OSError; files.OutputExistsError a ValueError
+        return cli.report_error(e, debug=args.debug)
     print(f"converted {summary['tensors']} tensors ({summary['params']:,} params, model {summary['model']}) "
           f"-> {summary['out']}")
     return 0

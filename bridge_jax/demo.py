@@ -14,7 +14,6 @@ Steps:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -37,7 +36,7 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     config.update_from_flattened_dict(dict(overrides or {}))
     demo_run = setup.parse(config)
     train_dir = os.path.join(workdir, "train")
-    if enable_cache:
+    if enable_cache:  # the demo's config is fixed and checked above: <workdir>/xla_cache serves all its steps
         train.enable_compilation_cache(demo_run.compilation_cache_dir, workdir)
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
@@ -45,7 +44,7 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     t0 = time.time()
     print(f"[1/3] Training the demo model ({demo_run.num_train_steps} steps, {demo_run.height}x{demo_run.width}, "
           f"{demo_run.model.config['name']}) in {train_dir}", flush=True)
-    result = train.train_and_evaluate(demo_run, train_dir)
+    result = train.train_and_evaluate(demo_run, train_dir, config_name="demo")
     train_s = time.time() - t0
     if result["interrupted"]:
         print(f"Training interrupted at step {result['step']}; run the same command again to resume.")
@@ -89,18 +88,23 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     return summary
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bridge_jax.demo", description=__doc__.split("\n\n")[0])
+def build_parser():
+    parser = cli.make_parser("bridge_jax.demo", __doc__)
     parser.add_argument("--workdir", default="work/demo", help="output folder (resumed if it exists)")
-    parser.add_argument("--short", action="store_true", help="a 1-minute smoke run (demo.py:short)")
-    args = parser.parse_args(argv)
+    parser.add_argument("--short", action="store_true", help="a 1-minute smoke run (the config demo:short)")
+    cli.add_debug_flag(parser)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     try:
-        run(args.workdir, config_arg="short" if args.short else None, enable_cache=True)
-    except (ValueError, OSError) as e:  # ConfigError, EvaluationError, a taken output folder...: one line
-        return cli.report_error(e)
+        summary = run(args.workdir, config_arg="short" if args.short else None, enable_cache=True)
     except train.TrainingDiverged as e:
-        return cli.report_error(e, code=1)
-    return 0
+        return cli.report_error(e, code=train.EXIT_DIVERGED, debug=args.debug)
+    except (ValueError, OSError) as e:  # ConfigError, EvaluationError, a taken output folder...: one line
+        return cli.report_error(e, debug=args.debug)
+    return train.EXIT_INTERRUPTED if summary.get("interrupted") else 0
 
 
 if __name__ == "__main__":

@@ -1,7 +1,10 @@
 """Evaluation on KITTI 2015 / 2012, the Eigen split, the built-in synthetic set or any KITTI-layout folder.
 
     python -m bridge_jax.evaluate --checkpoint CKPT --dataset kitti2015 --data-dir ~/data/data_scene_flow
-    python -m bridge_jax.evaluate --checkpoint work/demo/train --dataset synthetic --data-dir work/demo/val_data --out eval/
+    # the shipped demo model (or your own `make demo` run: --checkpoint work/demo/train) on the synthetic set
+    python -m bridge_jax.evaluate --checkpoint demo --dataset synthetic --data-dir work/demo/val_data --out eval/
+    # the baselines alone, on the first 20 frames
+    python -m bridge_jax.evaluate --dataset kitti2015 --data-dir ~/data/data_scene_flow --max-frames 20
 
 The model runs on each frame at the working size (default: the size a training workdir was trained at, else
 256×512 = H×W like the paper), one compiled function per working size and batch, and its maps are brought to the
@@ -16,7 +19,12 @@ ground-truth resolution as the paper's scripts did (`bridge_jax.inference`):
 Metrics (see `bridge_jax.metrics`) are reported as per-image means (paper) and pooled over pixels (KITTI
 devkit), next to two baselines run on the same frames at full resolution: zero motion and OpenCV (StereoSGBM for
 disparity, DIS for optical flow). Results are printed and written as JSON + Markdown (+ a few picture panels):
-``OUT/results.json``, ``OUT/results.md``, ``OUT/pictures/<frame id>.png``.
+
+    OUT/
+      results.json             every metric, per method and task, with timing
+      results.md               the same as Markdown tables
+      pictures/<frame id>.png  input | flow | flow GT | flow error, then disparity | GT | error; the colour bar at
+                               the right reads the error maps' colours in px (log scale, 0 to 12 px and above)
 """
 
 from __future__ import annotations
@@ -32,12 +40,13 @@ from typing import Any, Optional
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files, inference
+from bridge_jax import cli, files
 from bridge_jax.eval.baselines import opencv_method, zero_method
 from bridge_jax.eval.datasets import DATASETS, EvaluationError, Frame, list_frames, load_frame
 from bridge_jax.eval.methods import ModelMethod
 from bridge_jax.eval.report import frame_panel, markdown_table, write_outputs
 from bridge_jax.eval.scoring import Scores
+from bridge_jax.predict import load_predictor
 
 
 @dataclasses.dataclass
@@ -156,23 +165,39 @@ def evaluate(predictor, dataset: str, data_dir: str, *, split: Optional[str] = N
 # Command line
 
 
+DATASET_HELP = ("kitti2015 / kitti2012: the KITTI stereo+flow benchmarks (training split has GT); eigen: the "
+                "Eigen depth split of KITTI raw; synthetic: the built-in synthetic set (bridge_jax.data.synthetic); "
+                "folder: any KITTI 2015 layout folder, GT optional")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bridge_jax.evaluate", description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", help="params-only dir, training workdir or step dir (omit: baselines only)")
-    p.add_argument("--dataset", required=True, choices=DATASETS)
+    p = cli.make_parser("bridge_jax.evaluate", __doc__)
+    p.add_argument("--checkpoint",
+                   help="the model: a params dir, a training workdir, a step dir, or a shipped model name such as "
+                        "demo (omit: baselines only)")
+    p.add_argument("--dataset", required=True, choices=DATASETS, help=DATASET_HELP)
     p.add_argument("--data-dir", required=True, help="dataset root (KITTI layout folder, or KITTI raw for eigen)")
-    p.add_argument("--split", default=None, help="KITTI: sub-folder (default training); eigen: list file")
-    p.add_argument("--out", default=None, help="write results.json / results.md / pictures here")
+    p.add_argument("--split", default=None,
+                   help="KITTI: sub-folder (default: training); eigen: a list file (default: the bundled 697 frames)")
+    p.add_argument("--out", default=None, help="write results.json / results.md / pictures/ here")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
-    p.add_argument("--working-size", type=cli.parse_size, default=None,
-                   help="HxW of the network input (default: the size a training workdir was trained at, else 256x512)")
-    p.add_argument("--batch", type=int, default=1, help="frames per inference call")
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--pictures", type=int, default=4, help="number of picture panels written to --out")
-    p.add_argument("--no-garg-crop", dest="garg_crop", action="store_false", help="eigen: no Garg crop")
-    p.add_argument("--baselines", dest="baselines", action="store_true", default=True)
-    p.add_argument("--no-baselines", dest="baselines", action="store_false")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--working-size", type=cli.parse_size, default=None, metavar="HxW",
+                   help="network input size, multiples of the model's input multiple (64 for resnet_md and pwcnet, "
+                        "8 for pwc_lite); default: the size the checkpoint was trained at, else 256x512")
+    p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
+    p.add_argument("--max-frames", type=int, default=None,
+                   help="evaluate only the first N frames (a quick check; default: all)")
+    p.add_argument("--pictures", type=int, default=4,
+                   help="number of picture panels (input | prediction | GT | error, with the error colour bar) "
+                        "written to --out/pictures/")
+    # flags are store_true (never store_false): the help would otherwise show a misleading "(default: True)"
+    p.add_argument("--no-garg-crop", action="store_true", help="eigen: evaluate without the Garg crop")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="skip the baselines (zero motion, OpenCV SGBM / DIS), which run by default")
+    p.add_argument("--baselines", dest="no_baselines", action="store_false", default=False,
+                   help="run the baselines (the default; undoes an earlier --no-baselines)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    cli.add_debug_flag(p)
     return p
 
 
@@ -181,17 +206,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.batch < 1:
             raise EvaluationError(f"--batch must be >= 1, got {args.batch}")
+        if args.max_frames is not None and args.max_frames < 1:
+            raise EvaluationError(f"--max-frames must be >= 1, got {args.max_frames}")
         if args.out is not None:
             files.check_output_dir(args.out, args.overwrite)
         height, width = args.working_size or (None, None)
-        predictor = (inference.load_predictor(args.checkpoint, height=height, width=width) if args.checkpoint
-                     else None)
-        results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=args.baselines,
-                           garg_crop=args.garg_crop, batch=args.batch, max_frames=args.max_frames, out_dir=args.out,
-                           num_pictures=args.pictures, overwrite=args.overwrite, progress=args.progress,
-                           extra_info={"checkpoint": args.checkpoint})
+        predictor = load_predictor(args.checkpoint, height, width) if args.checkpoint else None
+        results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
+                           garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
+                           out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,
+                           progress=not args.no_progress, extra_info={"checkpoint": args.checkpoint})
     except (ValueError, OSError) as e:  # EvaluationError, CorruptImageError...: one line naming the path
-        return cli.report_error(e)
+        return cli.report_error(e, debug=args.debug)
     print(results["markdown"])
     if args.out:
         print(f"wrote {os.path.join(args.out, 'results.json')} and results.md")

@@ -1,13 +1,14 @@
 """Export the inference network to a serialized StableHLO artifact (`jax.export`), weights baked in.
 
-    python -m bridge_jax.export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512 --batch 1
-                                [--dtype float32|bfloat16] [--task flow|stereo]]
+    python -m bridge_jax.export --checkpoint demo --out demo.stablehlo
+    python -m bridge_jax.export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
+                                [--dtype float32|bfloat16] [--task flow|stereo]
 
 The exported function is the predictor's network (`bridge_jax.inference.Predictor`) at its working size: it maps
 `pairs (B, H, W, 6)` float32 in [0, 1] (image_a RGB, image_b RGB at the working size) to a tuple `(px0, frac0)`,
 each `(B, H, W, 2)` float32: the full-resolution map in pixels and as fractions of (W, H). The working size
-defaults to the size a training workdir was trained at, else 256 x 512. Load and run it without bridge_jax's
-model code:
+`H x W` defaults to the size the checkpoint was trained at, else 256 x 512 (as for predict and evaluate); B is
+`--batch`. Load and run it without bridge_jax's model code:
 
     from jax import export
     exp = export.deserialize(open("model.stablehlo", "rb").read())
@@ -28,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from bridge_jax import cli, files, inference
+from bridge_jax.predict import load_predictor
 
 
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
@@ -58,25 +60,43 @@ def load_exported(path: str | os.PathLike) -> jax.export.Exported:
     return jax.export.deserialize(bytearray(Path(path).read_bytes()))
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bridge_jax.export", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", required=True, help="params dir, training workdir or step dir")
-    ap.add_argument("--out", required=True, help="output file (serialized StableHLO)")
-    ap.add_argument("--height", type=int, default=None, help="working height (default: the trained size, else 256)")
-    ap.add_argument("--width", type=int, default=None, help="working width (default: the trained size, else 512)")
-    ap.add_argument("--batch", type=int, default=1)
-    ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32", help="compute dtype")
+def build_parser() -> argparse.ArgumentParser:
+    ap = cli.make_parser("bridge_jax.export", __doc__)
+    ap.add_argument("--checkpoint", required=True,
+                    help="the model: a params dir, a training workdir, a step dir, or a shipped model name such as "
+                         "demo")
+    ap.add_argument("--out", required=True, help="output file (serialized StableHLO), written atomically")
+    ap.add_argument("--height", type=int, default=None,
+                    help="working height, a multiple of the model's input multiple (64 for resnet_md and pwcnet, "
+                         "8 for pwc_lite); default: the height the checkpoint was trained at, else 256")
+    ap.add_argument("--width", type=int, default=None,
+                    help="working width, the same multiple; default: the width the checkpoint was trained at, "
+                         "else 512")
+    ap.add_argument("--batch", type=int, default=1,
+                    help="number of pairs B the exported function takes per call (its input is fixed at "
+                         "(B, H, W, 6))")
+    ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32",
+                    help="compute dtype baked into the artifact (weights stay float32)")
     ap.add_argument("--task", choices=list(inference.TASKS), default="flow",
-                    help="which network of a separate-networks checkpoint to export")
-    args = ap.parse_args(argv)
+                    help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
+                         "stereo: left/right pairs); a shared network is the same for both")
+    cli.add_debug_flag(ap)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
-        predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width, dtype=args.dtype)
+        if args.batch < 1:   # checked before the (slow) checkpoint load
+            raise ValueError(f"--batch must be >= 1, got {args.batch}")
+        predictor = load_predictor(args.checkpoint, args.height, args.width, option="--height/--width",
+                                   dtype=args.dtype)
         exp = export_network(predictor, batch=args.batch, task=args.task)
         out = serialize_to_file(exp, args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
-        return cli.report_error(ImportError(f"{e} (pip install flatbuffers)"))
+        return cli.report_error(ImportError(f"{e} (pip install flatbuffers)"), debug=args.debug)
     except (ValueError, OSError) as e:
-        return cli.report_error(e)
+        return cli.report_error(e, debug=args.debug)
     shape = [args.batch, predictor.height, predictor.width]
     print(json.dumps({"out": str(out), "bytes": out.stat().st_size, "model": predictor.model_cfg["name"],
                       "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype}))

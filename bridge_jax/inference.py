@@ -1,7 +1,7 @@
 """Run a trained network on your own images: the one predictor of bridge_jax.
 
     from bridge_jax.inference import load_predictor
-    pred = load_predictor("work/demo/train")                        # params-only dir, workdir or step dir
+    pred = load_predictor("demo")                                   # the shipped model, or a checkpoint path
     flow = pred.predict_pair(frame_t, frame_t1)                     # (h, w, 2) pixels, uint8 or float images
     out = pred.predict_cycle(left_t, right_t, left_t1, right_t1)   # disp_t, disp_t1 (h, w), flow (h, w, 2)
 
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, models
+from bridge_jax import checkpointing, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 
 DEFAULT_HEIGHT = 256
@@ -312,9 +312,11 @@ class Predictor:
 
 
 def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
-    """(height, width) a training workdir (or one of its step dirs) was trained at, from its config.json;
-    None for params-only checkpoints or when unknown."""
+    """(height, width) a training workdir (or one of its step dirs) was trained at, from its config.json, or a
+    shipped model (by name) was trained at; None for params-only checkpoints or when unknown."""
     try:
+        if zoo.is_name(path):
+            return zoo.trained_size(path) or trained_working_size(zoo.resolve_path(path))
         model_json, _, _ = checkpointing.resolve_checkpoint(path)
         with open(model_json.parent / checkpointing.CONFIG_JSON) as f:
             cfg = json.load(f)
@@ -325,10 +327,11 @@ def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
                    dtype: Any = None) -> Predictor:
-    """A Predictor from any checkpoint `bridge_jax.checkpointing.load_params` accepts.
+    """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
+    `bridge_jax.checkpointing.load_params` accepts (params-only dir, training workdir, step dir).
 
-    Working size: `height`/`width` if given, else the size a training workdir was trained at (its
-    config.json; a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
+    Working size: `height`/`width` if given, else the size a training workdir or shipped model was trained at
+    (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
     Raises ValueError naming the checkpoint (missing, unreadable) or the working size.
     """
@@ -336,7 +339,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
         height = trained[0] if height is None else height
         width = trained[1] if width is None else width
-    cfg, params = checkpointing.load_params(path)
+    cfg, params = zoo.load_params(path)
     separate = bool(cfg.pop("separate_networks", False))
     graphdef, _ = models.abstract_init(cfg)
     if dtype is None:

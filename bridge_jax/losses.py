@@ -610,9 +610,9 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
 
     s runs over `cfg.loss_scales`; lambda_sm is `cfg.smoothness_weight()` (lambda_sm1 for first order); w_2warp =
     lambda_2warp (paper) or 0.1 (upstream), see `LossConfig.two_warp_term_weight`.
-    Term names: "<term>_<fwd|bwd>/<scale>" per scale ("l1_", "ssim_" or "census_", "photo_", "smooth_", "lr_"),
-    "two_warp_<a|b>/<scale>", and the sums over scales "photo_fwd", "photo_bwd", "smooth_fwd", "smooth_bwd",
-    "lr", "two_warp_a", "two_warp_b", "two_warp", "total".
+    Term names: "<term>_<fwd|bwd>/<scale>" per scale ("l1_", "ssim_" or "census_", "photo_", "smooth_",
+    "left_right_"), "two_warp_<a|b>/<scale>", and the sums over scales "photo_fwd", "photo_bwd", "smooth_fwd",
+    "smooth_bwd", "left_right" (the LR consistency term; "lr" in the logs is the learning rate), "two_warp_a", "two_warp_b", "two_warp", "total".
     """
     a = cfg.alpha
     terms = {}
@@ -623,14 +623,16 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
             terms[f"photo_{d}/{s}"] = photo.value(a)
         terms[f"smooth_fwd/{s}"], terms[f"smooth_bwd/{s}"] = t.smooth_fwd, t.smooth_bwd
         if t.lr_fwd is not None:
-            terms[f"lr_fwd/{s}"], terms[f"lr_bwd/{s}"] = t.lr_fwd, t.lr_bwd
+            terms[f"left_right_fwd/{s}"], terms[f"left_right_bwd/{s}"] = t.lr_fwd, t.lr_bwd
         for tag, photo in zip("ab", t.two_warp):
             terms[f"two_warp_{tag}/{s}"] = photo.value(a)
     n = range(len(scales))
     for d in ("fwd", "bwd"):
         terms[f"photo_{d}"] = sum(terms[f"photo_{d}/{s}"] for s in n)
         terms[f"smooth_{d}"] = sum(terms[f"smooth_{d}/{s}"] for s in n)
-    terms["lr"] = sum(terms[f"lr_fwd/{s}"] + terms[f"lr_bwd/{s}"] for s in n) if "lr_fwd/0" in terms else jnp.zeros(())
+    # "left_right", not "lr": in the logs "lr" is the learning rate
+    terms["left_right"] = (sum(terms[f"left_right_fwd/{s}"] + terms[f"left_right_bwd/{s}"] for s in n)
+                           if "left_right_fwd/0" in terms else jnp.zeros(()))
     two_warp = jnp.zeros(())
     for tag in "ab"[:len(scales[0].two_warp)]:
         terms[f"two_warp_{tag}"] = sum(terms[f"two_warp_{tag}/{s}"] for s in n)
@@ -638,7 +640,7 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
     terms["two_warp"] = two_warp
     total = (terms["photo_fwd"] + terms["photo_bwd"]
              + cfg.smoothness_weight() * (terms["smooth_fwd"] + terms["smooth_bwd"])
-             + cfg.lambda_lr * terms["lr"] + cfg.two_warp_term_weight() * two_warp)
+             + cfg.lambda_lr * terms["left_right"] + cfg.two_warp_term_weight() * two_warp)
     terms["total"] = total
     return total, terms
 

@@ -1,22 +1,38 @@
 """Run a trained model on your own images or video and write pictures and raw values.
 
     # optical flow between two frames (or --pair-kind stereo for a rectified left/right pair)
-    python -m bridge_jax.predict --checkpoint CKPT frame_a.png frame_b.png --out out/
+    python -m bridge_jax.predict --checkpoint demo frame0.png frame1.png --out out/
     # a stereo-video cycle: left_t right_t left_t1 right_t1 → disparity at t and t+1, flow, depth
-    python -m bridge_jax.predict --checkpoint CKPT lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
-    # a folder of frames (mono: flow between consecutive frames; with left/ and right/ sub-folders: stereo video)
-    python -m bridge_jax.predict --checkpoint CKPT frames/ --out out/
+    python -m bridge_jax.predict --checkpoint demo lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
+    # a folder of frames (mono: flow between consecutive frames; with left/ and right/ sub-folders: stereo video),
+    # with raw values as KITTI PNGs, Middlebury .flo (flow) and .pfm (disparity, depth)
+    python -m bridge_jax.predict --checkpoint work/demo/train frames/ --out out/ --raw png,flo,pfm
     # a video (mono), a side-by-side stereo video, or two videos (left, right); writes out/video.mp4 too
     python -m bridge_jax.predict --checkpoint CKPT drive.mp4 --out out/ [--stereo-video sbs]
     # KITTI 2015 (or 2012) benchmark submission from a KITTI layout folder (training or testing)
     python -m bridge_jax.predict --checkpoint CKPT --kitti-submission --data-dir data_scene_flow --out sub/
 
-Outputs (``NNNNNN`` = frame index): ``flow/NNNNNN.png`` (Middlebury colour wheel, key in ``legend_flow.png``),
-``disparity/NNNNNN.png`` and ``depth/NNNNNN.png`` (colormaps, colour bars in ``legend_*.png``), raw values as
-KITTI 16-bit PNGs (``*_kitti/``) and/or ``.npy`` (``*_npy/``, float32 pixels / metres), ``video.mp4`` for video
-input and ``predict.json`` describing the run. Maps are at the input resolution, rescaled exactly as in
-evaluation (`bridge_jax.inference`). Colour scales are fixed for a whole run (from the first frame unless
-``--max-flow`` / ``--max-disp`` are given) so that frames are comparable.
+Outputs are named after the inputs: ``<stem>`` is the file stem of the frame's (left) image, e.g.
+``frame0.png`` → ``flow/frame0.png`` (made unique with ``_2``, ``_3``, ... when two inputs share a stem); for
+video input it is the frame index ``NNNNNN``. Flow ``<stem>`` goes from that frame to the next one (t → t+1);
+for a cycle, ``<stem>`` of frame t is the stem of left_t, of frame t+1 the stem of left_t1.
+
+    out/
+      flow/<stem>.png             Middlebury colour wheel (key: legend_flow.png)
+      disparity/<stem>.png        colormap (colour bar: legend_disparity.png); stereo inputs only
+      depth/<stem>.png            with --focal and --baseline (colour bar: legend_depth.png)
+      disparity_t1_in_t/<stem>.png   cycle: the t+1 disparity brought into frame t along the flow
+      <folder>_kitti/<stem>.png   --raw png: KITTI 16-bit flow / disparity PNGs (flow_kitti/, disparity_kitti/)
+      <folder>_npy/<stem>.npy     --raw npy: float32 pixels (depth_npy/: metres)
+      flow_flo/<stem>.flo         --raw flo: Middlebury .flo, pixels (`bridge_jax.flowio`)
+      <folder>_pfm/<stem>.pfm     --raw pfm: disparity (pixels) / depth (metres) as PFM (disparity_pfm/, depth_pfm/)
+      video.mp4                   video input: input | flow [| disparity] per frame
+      predict.json                the run; "mapping": for each frame index with outputs its "stem", "inputs"
+                                  (the input paths, or video and frame) and "flow_to" (the next frame's inputs)
+
+Maps are at the input resolution, rescaled exactly as in evaluation (`bridge_jax.inference`). Colour scales are
+fixed for a whole run (from the first frame unless ``--max-flow`` / ``--max-disp`` are given) so that frames
+are comparable.
 
 KITTI submission layout: 2015 → ``disp_0/``, ``disp_1/`` (the t+1 disparity brought into frame t along the
 predicted flow) and ``flow/`` with ``<id>_10.png`` (zip the three folders for scene flow; ``disp_0`` alone for
@@ -34,15 +50,15 @@ import dataclasses
 import json
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Optional
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files, inference, metrics, visualize
-from bridge_jax.data import kitti
+from bridge_jax import cli, files, flowio, inference, metrics, models, visualize
+from bridge_jax.data import kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
 
@@ -51,8 +67,74 @@ VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", 
 STEREO_SUBDIRS = (("left", "right"), ("image_02", "image_03"), ("image_2", "image_3"), ("image_0", "image_1"))
 
 
+RAW_FORMATS = ("png", "npy", "flo", "pfm")
+"""What --raw can ask for: KITTI 16-bit PNGs, .npy, Middlebury .flo (flow), .pfm (disparity and depth)."""
+
+
 class PredictError(ValueError):
     """Bad user input for predict (names the file or option)."""
+
+
+class WorkingSizeError(ValueError):
+    """The requested working size does not suit the checkpoint's model (names the option and the multiple)."""
+
+
+def check_working_size_option(model_name: str, height: int, width: int, option: str = "--working-size") -> None:
+    """Raises WorkingSizeError naming `option` unless ``height x width`` suits `model_name`: positive multiples
+    of `models.INPUT_MULTIPLE` (the message suggests the nearest ones), and for pwc_lite large enough for its
+    pyramid."""
+    multiple = models.INPUT_MULTIPLE.get(model_name)
+    if multiple is None:
+        return
+    if height <= 0 or width <= 0 or height % multiple or width % multiple:
+        near = _suggest_size(model_name, multiple, height, width)
+        raise WorkingSizeError(f"{option} {height}x{width}: height and width must be multiples of {multiple} for "
+                               f"model {model_name}" + (f" (try {near[0]}x{near[1]})" if near else ""))
+    try:
+        models.check_working_size(model_name, int(height), int(width), what=f"{option} {height}x{width}")
+    except ValueError as e:
+        raise WorkingSizeError(str(e)) from None
+
+
+def _suggest_size(model_name: str, multiple: int, height: int, width: int) -> Optional[tuple[int, int]]:
+    """The valid working size closest to ``height x width`` (sum of the differences): the nearest multiples
+    (halves round up), grown in steps of `multiple` where the model needs more (pwc_lite's pyramid)."""
+    def nearest(v):
+        return max(multiple, (max(v, 0) + multiple // 2) // multiple * multiple)
+
+    def ok(h, w):
+        try:
+            models.check_working_size(model_name, h, w)
+            return True
+        except ValueError:
+            return False
+
+    steps = [k * multiple for k in range(16)]
+    fits = [(abs(h - height) + abs(w - width), h, w) for h in (nearest(height) + d for d in steps)
+            for w in (nearest(width) + d for d in steps) if ok(h, w)]
+    return min(fits)[1:] if fits else None
+
+
+def load_predictor(checkpoint: str, height: Optional[int] = None, width: Optional[int] = None, *,
+                   option: str = "--working-size", dtype=None) -> inference.Predictor:
+    """`inference.load_predictor`, but a working size that does not suit the model is reported against the
+    command-line `option` (`WorkingSizeError`: the given size, the model's input multiple, a size to try)
+    rather than as a generic error. ``None`` sizes: the checkpoint's trained size, else 256 x 512."""
+    try:
+        return inference.load_predictor(checkpoint, height=height, width=width, dtype=dtype)
+    except ValueError as error:
+        if height is None and width is None:
+            raise
+        # Was the size the problem? Only the checkpoint knows its model (hence its input multiple): load it at
+        # its own size (this costs a second load, but only on this error path) and check the size against it.
+        try:
+            fallback = inference.load_predictor(checkpoint, dtype=dtype)
+        except ValueError:
+            raise error from None   # the checkpoint (or dtype) itself is at fault: its own message names it
+        name = (fallback.model_cfg or {}).get("name", "")
+        check_working_size_option(name, fallback.height if height is None else height,
+                                  fallback.width if width is None else width, option)
+        raise
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -61,7 +143,13 @@ class PredictError(ValueError):
 
 @dataclasses.dataclass
 class Source:
-    """A frame source. ``stereo``: frames carry a right image; ``pair_kind``: for two plain images only."""
+    """A frame source. ``stereo``: frames carry a right image.
+
+    ``names``: the output stem of each frame index (image inputs: the stem of the frame's left image, made
+    unique); None numbers the outputs ``NNNNNN`` (video). ``inputs``: frame index -> the input it came from, as
+    recorded in predict.json (e.g. ``{"left": path, "right": path}``, ``{"image": path}``,
+    ``{"video": path, "frame": i}``).
+    """
 
     kind: str                       # "pair" | "cycle" | "folder" | "video"
     stereo: bool
@@ -69,6 +157,36 @@ class Source:
     num_frames: Optional[int]
     fps: Optional[float] = None
     description: str = ""
+    names: Optional[list[str]] = None
+    inputs: Optional[Callable[[int], dict]] = None
+
+    def name(self, index: int) -> str:
+        """The output file stem of frame `index`."""
+        return self.names[index] if self.names is not None else f"{index:06d}"
+
+
+def unique_stems(paths: Sequence[str]) -> list[str]:
+    """File stems of `paths` (``a/frame0.png`` -> ``frame0``), made unique in order: a repeated stem gets
+    ``_2``, ``_3``, ... (skipping any name another input already has). Compared case-insensitively, so that
+    the outputs stay distinct on case-insensitive file systems too."""
+    stems = [os.path.splitext(os.path.basename(p))[0] or f"{i:06d}" for i, p in enumerate(paths)]
+    taken = {s.casefold() for s in stems}   # every input's own stem is reserved: no suffix may produce one
+    seen: set[str] = set()
+    out = []
+    for stem in stems:
+        name, k = stem, 1
+        while name.casefold() in seen or (name != stem and name.casefold() in taken):
+            k += 1
+            name = f"{stem}_{k}"
+        seen.add(name.casefold())
+        out.append(name)
+    return out
+
+
+def _path_inputs(lefts: Sequence[str], rights: Optional[Sequence[str]]) -> Callable[[int], dict]:
+    if rights is None:
+        return lambda i: {"image": lefts[i]}
+    return lambda i: {"left": lefts[i], "right": rights[i]}
 
 
 def read_image(path: str) -> np.ndarray:
@@ -110,51 +228,13 @@ def _image_stream(lefts: list[str], rights: Optional[list[str]]):
         yield left, right
 
 
-def _video_frames(path: str) -> Iterator[np.ndarray]:
-    cap = cv2.VideoCapture(path)
-    try:
-        n = 0
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            n += 1
-            yield np.ascontiguousarray(frame[..., ::-1])
-        if n == 0:
-            raise PredictError(f"cannot read any frame from video {path}")
-    finally:
-        cap.release()
-
-
-def _open_video(path: str) -> tuple[Optional[int], Optional[float]]:
-    if not os.path.isfile(path):
-        raise PredictError(f"video {path} does not exist")
-    cap = cv2.VideoCapture(path)
-    try:
-        if not cap.isOpened():
-            raise PredictError(f"cannot open video {path}")
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        fps = cap.get(cv2.CAP_PROP_FPS)
-        return (n if n > 0 else None), (fps if fps and fps > 0 else None)
-    finally:
-        cap.release()
-
-
 def _video_stream(paths: Sequence[str], sbs: bool):
-    if len(paths) == 2:
-        for i, (a, b) in enumerate(zip(_video_frames(paths[0]), _video_frames(paths[1]))):
-            if a.shape != b.shape:
-                raise PredictError(f"frame {i}: {paths[0]} is {a.shape[:2]} but {paths[1]} is {b.shape[:2]}")
-            yield a, b
+    """(left, right-or-None) frames: a mono video, a side-by-side one, or a left + right pair of videos."""
+    if len(paths) == 2 or sbs:
+        yield from videos.stereo_frames(paths, side_by_side=sbs)
         return
-    for frame in _video_frames(paths[0]):
-        if sbs:
-            w = frame.shape[1]
-            if w % 2:
-                raise PredictError(f"side-by-side video {paths[0]} has odd width {w}")
-            yield np.ascontiguousarray(frame[:, : w // 2]), np.ascontiguousarray(frame[:, w // 2:])
-        else:
-            yield frame, None
+    for frame in videos.video_frames(paths[0]):
+        yield frame, None
 
 
 def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "flow",
@@ -182,13 +262,16 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "
             raise PredictError(f"--mode pair needs 2 images, got {len(inputs)}")
         if pair_kind == "stereo":
             return Source("pair", True, _image_stream([inputs[0]], [inputs[1]]), 1,
-                          description="stereo pair (left, right)")
-        return Source("pair", False, _image_stream(list(inputs), None), 2, description="image pair (t, t+1)")
+                          description="stereo pair (left, right)", names=unique_stems([inputs[0]]),
+                          inputs=_path_inputs([inputs[0]], [inputs[1]]))
+        return Source("pair", False, _image_stream(list(inputs), None), 2, description="image pair (t, t+1)",
+                      names=unique_stems(inputs), inputs=_path_inputs(list(inputs), None))
     if mode == "cycle":
         if len(inputs) != 4:
             raise PredictError(f"--mode cycle needs 4 images (left_t right_t left_t1 right_t1), got {len(inputs)}")
-        return Source("cycle", True, _image_stream([inputs[0], inputs[2]], [inputs[1], inputs[3]]), 2,
-                      description="stereo cycle")
+        lefts, rights = [inputs[0], inputs[2]], [inputs[1], inputs[3]]
+        return Source("cycle", True, _image_stream(lefts, rights), 2, description="stereo cycle",
+                      names=unique_stems(lefts), inputs=_path_inputs(lefts, rights))
     if mode == "folder":
         folder = inputs[0]
         if len(inputs) != 1 or not os.path.isdir(folder):
@@ -204,22 +287,33 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "
                 if not lefts:
                     raise PredictError(f"no images in {ld}")
                 return Source("folder", True, _image_stream(lefts, rights), len(lefts),
-                              description=f"stereo frames {ld} / {rd}")
+                              description=f"stereo frames {ld} / {rd}", names=unique_stems(lefts),
+                              inputs=_path_inputs(lefts, rights))
         frames = _list_images(folder)
         if len(frames) < 2:
             raise PredictError(f"folder {folder} has {len(frames)} images; need at least 2 consecutive frames "
                                "(or left/ and right/ sub-folders)")
-        return Source("folder", False, _image_stream(frames, None), len(frames), description=f"frames {folder}")
+        return Source("folder", False, _image_stream(frames, None), len(frames), description=f"frames {folder}",
+                      names=unique_stems(frames), inputs=_path_inputs(frames, None))
     if mode == "video":
         if len(inputs) not in (1, 2):
             raise PredictError(f"--mode video needs 1 video (or 2: left, right), got {len(inputs)}")
-        counts = [_open_video(p) for p in inputs]
+        counts = [videos.video_info(p) for p in inputs]
         n, fps = counts[0]
         if len(inputs) == 2 and counts[1][0] is not None and n is not None:
             n = min(n, counts[1][0])
         stereo = len(inputs) == 2 or stereo_video == "sbs"
+        paths = list(inputs)
+        if len(paths) == 2:
+            def video_inputs(i):
+                return {"left": paths[0], "right": paths[1], "frame": i}
+        else:
+            def video_inputs(i):
+                return {"video": paths[0], "frame": i, **({"side_by_side": True} if stereo_video == "sbs" else {})}
+        # names=None: video frames keep their frame-index numbering NNNNNN
         return Source("video", stereo, _video_stream(inputs, stereo_video == "sbs"), n, fps,
-                      description=f"video {' + '.join(inputs)}" + (" (side by side)" if stereo_video == "sbs" else ""))
+                      description=f"video {' + '.join(inputs)}" + (" (side by side)" if stereo_video == "sbs" else ""),
+                      inputs=video_inputs)
     raise PredictError(f"unknown --mode {mode!r}")
 
 
@@ -257,8 +351,11 @@ class Writer:
     """Writes the per-frame outputs into ``root`` (a temporary folder), with colour scales fixed on first use."""
 
     def __init__(self, root: str, *, raw: Sequence[str], max_flow: Optional[float], max_disp: Optional[float],
-                 focal: Optional[float], baseline: Optional[float], video_fps: Optional[float]):
+                 focal: Optional[float], baseline: Optional[float], video_fps: Optional[float],
+                 name: Callable[[int], str] = lambda index: f"{index:06d}"):
         self.root = root
+        self.name = name                      # frame index -> output file stem
+        self.written: dict[int, set[str]] = {}   # frame index -> the sub-folders that got a file for it
         self.raw = set(raw)
         self.max_flow = max_flow
         self.max_disp = max_disp
@@ -271,7 +368,8 @@ class Writer:
     def _path(self, sub: str, index: int, ext: str) -> str:
         d = os.path.join(self.root, sub)
         os.makedirs(d, exist_ok=True)
-        return os.path.join(d, f"{index:06d}{ext}")
+        self.written.setdefault(index, set()).add(sub)
+        return os.path.join(d, f"{self.name(index)}{ext}")
 
     def flow(self, index: int, flow: np.ndarray, sub: str = "flow") -> np.ndarray:
         if self.max_flow is None:
@@ -283,6 +381,8 @@ class Writer:
             kitti.write_flow_png(self._path(f"{sub}_kitti", index, ".png"), flow, np.ones(flow.shape[:2], bool))
         if "npy" in self.raw:
             np.save(self._path(f"{sub}_npy", index, ".npy"), flow.astype(np.float32))
+        if "flo" in self.raw:
+            flowio.write_flo(self._path(f"{sub}_flo", index, ".flo"), flow)
         self.counts[sub] = self.counts.get(sub, 0) + 1
         return color
 
@@ -296,12 +396,16 @@ class Writer:
                                     np.ones(disp.shape, bool))
         if "npy" in self.raw:
             np.save(self._path(f"{sub}_npy", index, ".npy"), disp.astype(np.float32))
+        if "pfm" in self.raw:
+            flowio.write_pfm(self._path(f"{sub}_pfm", index, ".pfm"), disp)
         self.counts[sub] = self.counts.get(sub, 0) + 1
         if self.focal and self.baseline and sub == "disparity":
             depth = metrics.disparity_to_depth(disp, self.focal, self.baseline)
             visualize.write_image(self._path("depth", index, ".png"), visualize.depth_to_color(depth))
             if "npy" in self.raw:
                 np.save(self._path("depth_npy", index, ".npy"), depth.astype(np.float32))
+            if "pfm" in self.raw:
+                flowio.write_pfm(self._path("depth_pfm", index, ".pfm"), depth)
             self.counts["depth"] = self.counts.get("depth", 0) + 1
         return color
 
@@ -355,7 +459,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
     with files.staged_dir(out_dir, overwrite=overwrite) as tmp, \
             _progress(source.num_frames, progress, "predict") as bar:
         writer = Writer(tmp, raw=raw, max_flow=max_flow, max_disp=max_disp, focal=focal, baseline=baseline,
-                        video_fps=source.fps)
+                        video_fps=source.fps, name=source.name)
 
         def handle(outputs):
             for task, index, value in outputs:
@@ -394,12 +498,27 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
         writer.legends()
         desc = {"input": source.description, "kind": source.kind, "stereo": source.stereo, "frames": n_frames,
                 "outputs": writer.counts, "max_flow_px": writer.max_flow, "max_disparity_px": writer.max_disp,
-                "focal_px": focal, "baseline_m": baseline, "raw": sorted(set(raw))}
+                "focal_px": focal, "baseline_m": baseline, "raw": sorted(set(raw)),
+                "mapping": _mapping(source, writer.written)}
         if info:
             desc.update(info)
         with open(os.path.join(tmp, "predict.json"), "w") as f:
             json.dump(desc, f, indent=1)
     return desc
+
+
+def _mapping(source: Source, written: dict[int, set[str]]) -> list[dict]:
+    """predict.json's ``mapping``: for each frame index that has output files, its output stem, its inputs and,
+    when flow was written for it, the frame the flow goes to (the next one)."""
+    out = []
+    for index in sorted(written):
+        entry = {"index": index, "stem": source.name(index)}
+        if source.inputs is not None:
+            entry["inputs"] = source.inputs(index)
+            if "flow" in written[index]:
+                entry["flow_to"] = source.inputs(index + 1)
+        out.append(entry)
+    return out
 
 
 def _flush_video(writer: Writer, pending: dict[int, dict], stereo: bool, final: bool) -> None:
@@ -472,32 +591,59 @@ def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bridge_jax.predict", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("inputs", nargs="*", help="2 images, 4 images (cycle), a folder, or 1-2 videos")
-    p.add_argument("--checkpoint", required=True, help="params-only dir, training workdir or step dir")
+    p = cli.make_parser("bridge_jax.predict", __doc__)
+    p.add_argument("inputs", nargs="*", metavar="INPUTS",
+                   help="2 images (a pair), 4 images (a cycle: left_t right_t left_t1 right_t1), one folder, or 1-2 "
+                        "videos (left, right)")
+    p.add_argument("--checkpoint", required=True,
+                   help="the model: a params dir, a training workdir, a step dir, or a shipped model name such as demo")
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
-    p.add_argument("--mode", default="auto", choices=("auto", "pair", "cycle", "folder", "video"))
+    p.add_argument("--mode", default="auto", choices=("auto", "pair", "cycle", "folder", "video"),
+                   help="what INPUTS are; auto: 2 images = pair, 4 images = cycle, a folder = folder, "
+                        "1-2 videos = video")
     p.add_argument("--pair-kind", default="flow", choices=("flow", "stereo"),
                    help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
-                   help="one video holding left|right side by side")
-    p.add_argument("--working-size", type=cli.parse_size, default=None,
-                   help="network input HxW (default: the size a training workdir was trained at, else 256x512)")
-    p.add_argument("--batch", type=int, default=4, help="pairs per inference call")
-    p.add_argument("--raw", default="png", help="raw outputs: comma list of png (KITTI 16-bit), npy, or none")
-    p.add_argument("--max-flow", type=float, default=None, help="flow colour-wheel radius in px (default: auto)")
-    p.add_argument("--max-disp", type=float, default=None, help="disparity colormap top in px (default: auto)")
-    p.add_argument("--focal", type=float, default=None, help="focal length (px, at the input resolution) for depth")
-    p.add_argument("--baseline", type=float, default=None, help="stereo baseline (m) for depth")
-    p.add_argument("--no-video", dest="video", action="store_false", default=None, help="no video.mp4")
-    p.add_argument("--kitti-submission", action="store_true", help="write a KITTI submission from --data-dir")
+                   help="one video: mono (none) or left|right side by side in each frame (sbs)")
+    p.add_argument("--working-size", type=cli.parse_size, default=None, metavar="HxW",
+                   help="network input size, multiples of the model's input multiple (64 for resnet_md and pwcnet, "
+                        "8 for pwc_lite); default: the size the checkpoint was trained at, else 256x512")
+    p.add_argument("--batch", type=int, default=4, help="pairs per inference call (one compiled shape)")
+    p.add_argument("--raw", default="png",
+                   help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "
+                        "(*_npy/), flo (flow, flow_flo/), pfm (disparity and depth, *_pfm/), or none; "
+                        "e.g. png,flo,pfm")
+    p.add_argument("--max-flow", type=float, default=None,
+                   help="flow colour-wheel radius in px (default: 99th percentile of the first flow)")
+    p.add_argument("--max-disp", type=float, default=None,
+                   help="disparity colormap top in px (default: 1.1 x 99th percentile of the first disparity)")
+    p.add_argument("--focal", type=float, default=None,
+                   help="focal length in px at the input resolution; with --baseline, writes depth/")
+    p.add_argument("--baseline", type=float, default=None, help="stereo baseline in metres (with --focal)")
+    p.add_argument("--no-video", dest="video", action="store_false", default=None,
+                   help="do not write video.mp4 for video input")
+    p.add_argument("--kitti-submission", action="store_true",
+                   help="write a KITTI benchmark submission for every frame of --data-dir (takes no INPUTS)")
     p.add_argument("--data-dir", default=None, help="KITTI 2015/2012 layout folder (with --kitti-submission)")
-    p.add_argument("--split", default=None, help="KITTI sub-folder (default: testing if present)")
-    p.add_argument("--kitti-year", type=int, choices=(2012, 2015), default=None)
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--split", default=None,
+                   help="KITTI sub-folder: testing or training (default: testing if present)")
+    p.add_argument("--kitti-year", type=int, choices=(2012, 2015), default=None,
+                   help="KITTI benchmark of the submission (default: 2015 if --data-dir has image_2/, else 2012)")
+    # store_true into no_progress (not store_false into progress): the help would otherwise show "(default: True)"
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    cli.add_debug_flag(p)
     return p
+
+
+def parse_raw(text: str) -> list[str]:
+    """``--raw`` "png,flo" -> ["png", "flo"]; "none" or "" -> []; PredictError for unknown formats."""
+    raw = [r.strip().lower() for r in text.split(",") if r.strip() and r.strip().lower() != "none"]
+    bad = [r for r in raw if r not in RAW_FORMATS]
+    if bad:
+        raise PredictError(f"--raw {text}: unknown format(s) {', '.join(bad)}; expected a comma list of "
+                           f"{', '.join(RAW_FORMATS)}, or none")
+    return list(dict.fromkeys(raw))
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -505,10 +651,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.batch < 1:
             raise PredictError(f"--batch must be >= 1, got {args.batch}")
-        raw = [r for r in args.raw.split(",") if r and r != "none"]
-        bad = [r for r in raw if r not in ("png", "npy")]
-        if bad:
-            raise PredictError(f"--raw: unknown value(s) {bad}; expected png, npy or none")
+        raw = parse_raw(args.raw)
         if (args.focal is None) != (args.baseline is None):
             raise PredictError("--focal and --baseline go together")
         files.check_output_dir(args.out, args.overwrite)
@@ -518,20 +661,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
-            predictor = inference.load_predictor(args.checkpoint, height=height, width=width)
+            predictor = load_predictor(args.checkpoint, height, width)
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
-                                    overwrite=args.overwrite, batch=args.batch, progress=args.progress)
+                                    overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
-            predictor = inference.load_predictor(args.checkpoint, height=height, width=width)
+            predictor = load_predictor(args.checkpoint, height, width)
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
-                                  baseline=args.baseline, write_video=args.video, progress=args.progress,
+                                  baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
                                   info={"checkpoint": args.checkpoint})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
-        return cli.report_error(e)
-    print(json.dumps(desc, indent=1))
+        return cli.report_error(e, debug=args.debug)
+    print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))
     print(f"wrote {args.out}")
     return 0
 

@@ -1,46 +1,61 @@
-r"""Training: `python -m bridge_jax.train --config=bridge_jax/configs/<file>.py[:arg] --workdir=DIR`.
+r"""Training: `python -m bridge_jax.train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALUE ...]`.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/default \
-        [--config.global_batch=8 --config.data.source=kitti_raw --config.data.data_dir=...]
+    python -m bridge_jax.train --config=demo --workdir=work/demo          # the README's demo model (~11 min, CPU)
+    python -m bridge_jax.train --config=default --workdir=work/default \
+        --config.data.source=kitti_raw --config.data.data_dir=/data/kitti_raw --config.global_batch=8
+    python -m bridge_jax.train --config=demo --workdir=work/mine \
+        --config.data.source=folder --config.data.data_dir=my_video \
+        --config.data.val_dir=my_video_heldout --config.init_from=demo  # fine-tune the shipped model on your video
+    python -m bridge_jax.train --config=my_config.py:arg --workdir=DIR    # a config file of your own
+
+`--config` is a config shipped in the package, by name from any directory (listed below; `:arg` picks a
+variant, e.g. `full2:local`), or the path of a Python file with `get_config(arg)`. `--config.KEY=VALUE`
+overrides any field (dotted, Python literals). A run re-started with the same workdir resumes where it stopped.
 
 One run, top to bottom (sections of `train_and_evaluate`): parse and check the config (`setup.parse`) and build
 the data pipeline (nothing is written to the workdir before every input is validated), create model +
-optimiser, shard state and batches over a ('data',) mesh, resume from the latest checkpoint in the workdir
-(train state and data-iterator state) or initialise (optionally params from `--config.init_from`), then loop:
-jitted step, guards against non-finite updates, async checkpoints, metrics.jsonl / TensorBoard / tqdm,
-periodic validation on held-out synthetic data. SIGTERM/SIGINT save a checkpoint and exit 0.
+optimiser, shard state and batches over a ('data',) mesh, resume from the newest readable checkpoint in the
+workdir (train state and data-iterator state) or initialise (optionally params from `--config.init_from`: a
+checkpoint path or a shipped model name), then loop: jitted step, guard against non-finite updates, async
+checkpoints, metrics.jsonl / TensorBoard / progress bar, periodic validation on held-out data (synthetic frames
+with exact ground truth, or your own held-out frames from `config.data.val_dir`, scored photometrically).
 
 Workdir layout:
     config.json, model.json         the run's config and the model description (params-only loaders)
     checkpoints/<step>/{state,data} orbax: train state + grain iterator state
-    metrics.jsonl                   one JSON object per log/eval event
+    metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
     tensorboard/                    tensorboardX event files (scalars, images)
     images/                         the same pictures as PNG files
+    status.json                     {"status": "running" | "finished" | "interrupted" | "failed", "step": ...}
+
+Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume; a second
+Ctrl-C exits at once without saving); 2 bad input or environment (one line naming the option or file;
+`--debug` or BRIDGE_JAX_DEBUG=1 shows the traceback); 1 training diverged (too many non-finite steps in a row).
 """
 
 from __future__ import annotations
 
+import difflib
 import json
+import logging
 import math
 import os
 import signal
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Optional, Sequence
 
-import cv2
 import jax
 import ml_collections
 import numpy as np
-from absl import app, flags
-from ml_collections import config_flags
 from tensorboardX import SummaryWriter
-from tensorboardX.proto.summary_pb2 import Summary
 from tqdm import tqdm
 
-from bridge_jax import checkpointing, cli, files, inference, models, network, setup, train_step, visualize
-from bridge_jax.data import pipeline
+from bridge_jax import checkpointing, cli, configs, files, inference, models, network, setup, train_step, visualize
+from bridge_jax import zoo
+from bridge_jax.data import folders, pipeline
+from bridge_jax.eval import photometric
 from bridge_jax.eval.baselines import zero_method
 from bridge_jax.eval.datasets import Frame, synthetic_frames
 from bridge_jax.eval.methods import ModelMethod
@@ -52,6 +67,10 @@ class TrainingDiverged(RuntimeError):
     """Too many non-finite steps in a row: reported as one line, exit code 1."""
 
 
+EXIT_FINISHED, EXIT_DIVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 75  # 75 = EX_TEMPFAIL: "try again"
+STATUS_JSON = "status.json"
+
+
 # ##########################################################################################################
 # Logging
 # ##########################################################################################################
@@ -61,16 +80,24 @@ def _scalar(v) -> float:
 
 
 class Logger:
-    """metrics.jsonl + TensorBoard (tensorboardX) on process 0; no-ops elsewhere."""
+    """metrics.jsonl + TensorBoard (tensorboardX) on process 0; no-ops elsewhere.
 
-    def __init__(self, workdir: str, enabled: bool):
+    `resume_step`: the step a resumed run restarts from. Records of later steps (written by the previous run
+    after its last checkpoint, and redone now) are dropped from metrics.jsonl and TensorBoard's events are
+    purged past it, so both read as one run."""
+
+    def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None):
         self.enabled = enabled
         self.image_dir = os.path.join(workdir, "images")
         self.tb = None
         self.jsonl = None
         if enabled:
-            self.tb = SummaryWriter(os.path.join(workdir, "tensorboard"))
-            self.jsonl = open(os.path.join(workdir, "metrics.jsonl"), "a")
+            path = os.path.join(workdir, "metrics.jsonl")
+            if resume_step is not None:
+                truncate_metrics(path, resume_step)
+            self.tb = SummaryWriter(os.path.join(workdir, "tensorboard"),
+                                    purge_step=None if resume_step is None else int(resume_step) + 1)
+            self.jsonl = open(path, "a")
 
     def scalars(self, step: int, values: dict, kind: str = "train") -> None:
         if not self.enabled:
@@ -83,16 +110,18 @@ class Logger:
             if math.isfinite(v):
                 self.tb.add_scalar(k if "/" in k and kind == "train" else f"{kind}/{k}", v, int(step))
 
+    def record(self, step: int, kind: str, payload: dict) -> None:
+        """A non-scalar event (e.g. the data-skip report) in metrics.jsonl only."""
+        if self.enabled:
+            self.jsonl.write(json.dumps({"step": int(step), "kind": kind, "time": time.time(), **payload}) + "\n")
+            self.jsonl.flush()
+
     def image(self, step: int, tag: str, rgb: np.ndarray) -> None:
-        """An RGB uint8 (H, W, 3) picture; PNG-encoded with OpenCV (tensorboardX's add_image needs PIL)."""
+        """An RGB uint8 (H, W, 3) picture: TensorBoard (tensorboardX's add_image) and images/<tag>_<step>.png."""
         if not self.enabled:
             return
         rgb = np.ascontiguousarray(np.asarray(rgb, np.uint8))
-        ok, png = cv2.imencode(".png", rgb[..., ::-1])
-        if not ok:
-            return
-        img = Summary.Image(height=rgb.shape[0], width=rgb.shape[1], colorspace=3, encoded_image_string=png.tobytes())
-        self.tb._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=img)]), int(step))
+        self.tb.add_image(tag, rgb, int(step), dataformats="HWC")
         os.makedirs(self.image_dir, exist_ok=True)
         visualize.write_image(os.path.join(self.image_dir, f"{tag.replace('/', '_')}_{int(step):07d}.png"), rgb)
 
@@ -100,6 +129,28 @@ class Logger:
         if self.enabled:
             self.tb.close()
             self.jsonl.close()
+
+
+def truncate_metrics(path: str, resume_step: int) -> int:
+    """Drops the records of steps after `resume_step` from the metrics.jsonl at `path` (rewritten atomically);
+    returns how many were dropped. A torn last line (a crash mid-write) is dropped too."""
+    if not os.path.exists(path):
+        return 0
+    kept, dropped = [], 0
+    with open(path) as f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+                keep = int(rec.get("step", 0)) <= resume_step
+            except (json.JSONDecodeError, TypeError, ValueError, AttributeError):
+                keep = False
+            if keep and line.endswith("\n"):
+                kept.append(line)
+            else:
+                dropped += 1
+    if dropped:
+        files.write_text(path, "".join(kept))
+    return dropped
 
 
 # ##########################################################################################################
@@ -133,6 +184,31 @@ def validate(predictor: inference.Predictor, params, frames: list[Frame], batch:
     return out, (scored.pictures[0][1] if scored.pictures else None)
 
 
+def _validation_data(run: setup.Run):
+    """What validation runs on: ("synthetic", frames with exact ground truth), ("own", (N, 4, H, W, 3) held-out
+    cycles of `config.data.val_dir`, scored photometrically), or None when validation is off. Read before the
+    workdir is written, so a bad `val_dir` is one error and nothing else."""
+    if not run.eval.enabled:
+        return None
+    if run.data.val_dir:
+        try:
+            cycles = photometric.val_cycles(run.data, run.height, run.width, run.eval.num_samples)
+        except (ValueError, OSError) as e:
+            msg = str(e)
+            raise ConfigError(msg if photometric.OPTION in msg else f"{photometric.OPTION}: {msg}") from e
+        return ("own", cycles)
+    return ("synthetic", validation_frames(run))
+
+
+def _validate_data(predictor: inference.Predictor, params, val_data, batch: int, first_only: bool = False):
+    """(metrics, picture panel) of `params` on `_validation_data`'s result."""
+    kind, data = val_data
+    data = data[:1] if first_only else data
+    if kind == "own":
+        return photometric.photometric_validation(predictor, data, batch, params=params)
+    return validate(predictor, params, data, batch)
+
+
 # ##########################################################################################################
 # Pieces of a run
 # ##########################################################################################################
@@ -159,38 +235,49 @@ def _check_workdir(run: setup.Run, workdir: str) -> bool:
 
 
 def _make_dataset(run: setup.Run, process_index: int, process_count: int):
+    """(the training dataset, the number of cycles its source holds after the pre-scan)."""
     try:
-        return pipeline.make_train_dataset(run.data, global_batch=run.global_batch, seed=run.seed, height=run.height,
-                                           width=run.width, process_index=process_index, process_count=process_count)
+        source = pipeline.make_source(run.data, height=run.height, width=run.width, seed=run.seed)
+        dataset = pipeline.make_train_dataset(run.data, global_batch=run.global_batch, seed=run.seed,
+                                              height=run.height, width=run.width, process_index=process_index,
+                                              process_count=process_count, source=source)
     except (ValueError, FileNotFoundError, NotADirectoryError) as e:
         raise ConfigError(f"config.data: {e}") from e
-
-
-def _load_init_params(path: str, spec: setup.ModelSpec, abstract_params):
-    """Params from `config.init_from` (params-only dir, training workdir or step dir); architecture checked."""
-    if not os.path.exists(path):
-        raise ConfigError(f"config.init_from={path!r}: no such file or directory")
     try:
-        src_cfg, params = checkpointing.load_params(path)
+        return dataset, len(source)
+    except TypeError:  # a source of unknown size
+        return dataset, None
+
+
+def _load_init_params(spec: str, model: setup.ModelSpec, abstract_params):
+    """Params from `config.init_from` (a shipped model name such as "demo", a params-only dir, a training
+    workdir or a step dir); architecture checked and every value finite."""
+    if not zoo.is_name(spec) and not os.path.exists(spec):
+        raise ConfigError(f"config.init_from={spec!r}: no such file or directory (or a model name: "
+                          f"{', '.join(zoo.names())})")
+    try:
+        src_cfg, params = zoo.load_params(spec)
+        checkpointing.check_finite_params(params, f"config.init_from={spec!r}")
     except (ValueError, OSError) as e:
-        raise ConfigError(f"config.init_from={path!r}: {e}") from e
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith("config.init_from") else f"config.init_from={spec!r}: {msg}") from e
     # Keys that do not change the architecture (compute dtype, how fresh params are drawn) are not compared.
     ignore = ("dtype", "head_init")
     src = {k: v for k, v in src_cfg.items() if k not in ignore}
     src_separate = bool(src.pop("separate_networks", False))
-    want = {k: v for k, v in spec.config.items() if k not in ignore}
+    want = {k: v for k, v in model.config.items() if k not in ignore}
     try:
         src = {k: v for k, v in models.model_config(src).items() if k not in ignore}
     except ValueError:
         pass
     if src != want:
-        raise ConfigError(f"config.init_from={path!r} holds a different architecture: {src} (this run: {want})")
+        raise ConfigError(f"config.init_from={spec!r} holds a different architecture: {src} (this run: {want})")
     params = jax.tree.map(np.asarray, params)
-    if spec.separate and not src_separate:  # flow+stereo weights to start both networks of the no-sharing variant
+    if model.separate and not src_separate:  # flow+stereo weights to start both networks of the no-sharing variant
         params = {"stereo": params, "flow": params}
     if jax.tree.structure(params) != jax.tree.structure(abstract_params) or any(
             a.shape != b.shape for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(abstract_params))):
-        raise ConfigError(f"config.init_from={path!r}: parameter tree/shapes do not match the model {want['name']}")
+        raise ConfigError(f"config.init_from={spec!r}: parameter tree/shapes do not match the model {want['name']}")
     return params
 
 
@@ -243,25 +330,33 @@ class _Throughput:
 
 
 def _restore(ckpt: checkpointing.TrainCheckpointer, state, data_iter, is_main: bool):
-    """(state, step) of the latest checkpoint in the workdir (data iterator restored too), else (state, 0)."""
-    latest = ckpt.latest_step()
-    if latest is None:
-        return state, 0
+    """(state, step) of the newest checkpoint in the workdir that reads completely (data iterator restored too),
+    else (state, 0). A broken newer step (torn save, garbage, empty folder, NaN state) is warned about by name
+    and moved aside to `<step>.broken-<n>` at the next save, never deleted; all broken is one ConfigError."""
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
-    state, data_state = ckpt.restore(latest, abstract)
-    if data_state:
-        data_iter.set_state(data_state)
-    start_step = int(jax.device_get(state["step"]))
+    try:
+        found = ckpt.restore_latest(abstract, warn=is_main)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
+    if found is None:
+        return state, 0
+    if found.data_state:
+        data_iter.set_state(found.data_state)
+    start_step = int(jax.device_get(found.state["step"]))
     if is_main:
-        print(f"Resuming from {ckpt.directory}/{latest} (step {start_step}).", flush=True)
-    return state, start_step
+        skipped = "".join(f"; skipped broken step {s} ({why})" for s, why in found.broken)
+        print(f"Resuming from {ckpt.directory}/{found.step} (step {start_step}){skipped}.", flush=True)
+    return found.state, start_step
 
 
 class _StopSignals:
-    """SIGTERM / SIGINT set `received` instead of killing the run (the loop then saves and exits)."""
+    """SIGTERM / SIGINT set `received` instead of killing the run (the loop then saves and exits). The first
+    signal also restores the operating system's default action, so a second one ends the process at once, even
+    inside a long compilation or validation (nothing more is saved; the previous checkpoint stays)."""
 
-    def __init__(self):
+    def __init__(self, announce: bool = True):
         self.received = None
+        self.announce = announce
         self._old = {}
 
     def __enter__(self):
@@ -272,6 +367,11 @@ class _StopSignals:
 
     def _on_signal(self, signum, frame):  # noqa: ARG002
         self.received = signum
+        for sig in self._old:
+            signal.signal(sig, signal.SIG_DFL)
+        if self.announce:
+            print(f"\nReceived signal {signum}: stopping after this step and saving a checkpoint (send it again "
+                  "to exit now without saving).", file=sys.stderr, flush=True)
 
     def __exit__(self, *exc):
         for sig, handler in self._old.items():
@@ -283,22 +383,62 @@ class _StopSignals:
 # Train and evaluate
 # ##########################################################################################################
 
-def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: str) -> dict:
+def _write_status(workdir: str, status: str, step: int, **extra) -> None:
+    files.write_json(os.path.join(workdir, STATUS_JSON), {"status": status, "step": int(step), "time": time.time(),
+                                                         **extra})
+
+
+def _last_validation(workdir: str) -> dict:
+    """The last "val" record of a workdir's metrics.jsonl (a finished run re-run does not validate again)."""
+    last: dict = {}
+    path = os.path.join(workdir, "metrics.jsonl")
+    if os.path.exists(path):
+        with open(path) as f:
+            for line in f:
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if rec.get("kind") == "val":
+                    last = {k: v for k, v in rec.items() if k not in ("kind", "time", "step")}
+    return last
+
+
+def describe_validation(step: int, res: dict) -> str:
+    """One line of validation numbers (synthetic ground truth, or photometric on the user's own frames)."""
+    parts = []
+    if "flow_epe_all" in res:
+        parts.append(f"flow EPE {res['flow_epe_all']:.3f} px ({res.get('flow_epe_vs_zero', float('nan')):.2f}x "
+                     "zero motion)")
+    if "disp_epe_all" in res:
+        parts.append(f"disparity EPE {res['disp_epe_all']:.3f} px, D1 {res.get('disp_d1_all', float('nan')):.1f} %")
+    for key, label in (("flow_photo_ssim_l1_vs_zero", "flow photometric error"),
+                       ("stereo_photo_ssim_l1_vs_zero", "stereo photometric error")):
+        if key in res:
+            parts.append(f"{label} {res[key]:.2f}x zero motion")
+    if "stereo_lr_consistency_px" in res:
+        parts.append(f"left-right disparity inconsistency {res['stereo_lr_consistency_px']:.2f} px")
+    return f"step {step} validation: " + ("; ".join(parts) if parts else "no metrics")
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: str, *,
+                       enable_cache: bool = False, config_name: Optional[str] = None) -> dict:
     """Trains (or resumes) in `workdir`; returns a summary dict (final step, last metrics, validation, state).
 
-    `config`: a training config, or the `setup.Run` parsed from one."""
+    `config`: a training config, or the `setup.Run` parsed from one. `enable_cache`: turn on the persistent
+    compilation cache (`enable_compilation_cache`) once the inputs are checked (the command line does; a
+    library caller usually does not). `config_name`: how the config was named, for the start-up line."""
     ##### Check the input: nothing in the workdir is touched before this section passes ####################
     run = setup.parse(config)
     proc, nproc = jax.process_index(), jax.process_count()
     is_main = proc == 0
     workdir = os.path.abspath(workdir)
     resuming = _check_workdir(run, workdir)
-    dataset = _make_dataset(run, proc, nproc)
-    try:
-        dataset_size = len(dataset)
-    except TypeError:  # a source of unknown size
-        dataset_size = None
+    dataset, dataset_size = _make_dataset(run, proc, nproc)
     steps_per_epoch, num_steps = run.steps(dataset_size)
+    val_data = _validation_data(run)
+    if enable_cache:
+        enable_compilation_cache(run.compilation_cache_dir, workdir)
 
     ##### Create model & optimizer ############################################################################
     init_rng, state_rng = jax.random.split(jax.random.key(run.seed))
@@ -325,20 +465,24 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                                            async_save=loop.async_checkpoints)
     data_iter = iter(dataset)
     state, start_step = _restore(ckpt, state, data_iter, is_main)
+    if is_main:
+        print(_startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
+        _write_status(workdir, "running", start_step)
 
     ##### Update step and validation ###########################################################################
     step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
     predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
                                     dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                     mesh=mesh)
-    val_frames = validation_frames(run) if run.eval.enabled else []
-    logger = Logger(workdir, is_main)
+    logger = Logger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
     global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
-    def run_validation(step, frames, log_metrics=True):
-        res, panel = validate(predictor, state["params"], frames, max(1, run.eval.batch))
+    def run_validation(step, log_metrics=True, first_only=False):
+        res, panel = _validate_data(predictor, state["params"], val_data, max(1, run.eval.batch), first_only)
         if log_metrics:
             logger.scalars(step, res, kind="val")
+            if is_main:
+                tqdm.write(describe_validation(step, res), file=sys.stdout)
         if panel is not None and is_main:
             logger.image(step, "val/prediction", panel)
         return res
@@ -346,8 +490,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     ##### Train loop ###########################################################################################
     step, last_metrics, val, interrupted = start_step, {}, {}, False
     guard, meter = _NonFiniteGuard(loop.max_nonfinite_in_row, logger, ckpt, is_main), _Throughput(run.global_batch)
-    with _StopSignals() as stop, tqdm(total=num_steps, initial=start_step, unit="step", dynamic_ncols=True,
-                                      file=sys.stderr, disable=not (is_main and loop.progress_bar)) as bar:
+    finished_before = resuming and start_step >= num_steps
+    status = "failed"
+    with _StopSignals(announce=is_main) as stop, tqdm(total=num_steps, initial=start_step, unit="step",
+                                                      dynamic_ncols=True, file=sys.stderr,
+                                                      disable=not (is_main and loop.progress_bar)) as bar:
         try:
             while step < num_steps:
                 if stop.received is not None:
@@ -369,28 +516,53 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                     bar.set_postfix(loss=f"{_scalar(metrics['loss']):.4f}", cycles_s=f"{extra['cycles_per_s']:.2f}",
                                     refresh=False)
                 bar.update(1)
-                if val_frames and run.eval.every > 0 and step % run.eval.every == 0 and step < num_steps:
-                    val = run_validation(step, val_frames)
-                elif is_main and run.eval.image_every > 0 and step % run.eval.image_every == 0 and val_frames:
-                    run_validation(step, val_frames[:1], log_metrics=False)
+                if stop.received is not None:  # no long phase (validation) once asked to stop
+                    continue
+                if val_data and run.eval.every > 0 and step % run.eval.every == 0 and step < num_steps:
+                    val = run_validation(step)
+                elif is_main and run.eval.image_every > 0 and step % run.eval.image_every == 0 and val_data:
+                    run_validation(step, log_metrics=False, first_only=True)
 
             if interrupted:
                 if is_main:
-                    print(f"\nReceived signal {stop.received}: saving a checkpoint at step {step} and exiting.",
-                          file=sys.stderr, flush=True)
-            elif val_frames:
-                val = run_validation(step, val_frames)
+                    print(f"\nSaving a checkpoint at step {step} and exiting.", file=sys.stderr, flush=True)
+            elif finished_before:
+                val = _last_validation(workdir)
+            elif val_data:
+                val = run_validation(step)
+            skips = pipeline.skip_report()
+            if is_main and skips.get("cycles"):
+                logger.record(step, "data_skips", skips)
+                print(f"data: {skips['cycles']} cycles skipped (unreadable or inconsistent files), e.g. "
+                      f"{'; '.join(f'{k}: {v}' for k, v in list(skips.get('causes', {}).items())[:3])} "
+                      "(all of them in metrics.jsonl)", file=sys.stderr, flush=True)
             ckpt.save(step, state, data_iter.get_state(), force=True)
             ckpt.wait()
+            status = "interrupted" if interrupted else "finished"
         finally:
             ckpt.close()
             logger.close()
+            if is_main:
+                _write_status(workdir, status, step, **({"signal": int(stop.received)} if interrupted else {}))
 
     latest = ckpt.latest_step()
     return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
             "nonfinite_total": guard.total, "last_metrics": {k: _scalar(v) for k, v in last_metrics.items()},
             "validation": val, "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
-            "state": state}
+            "skipped_data": pipeline.skip_report(), "state": state}
+
+
+def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:
+    devices = f"{len(run.devices)} {run.devices[0].platform} device{'s' if len(run.devices) > 1 else ''}"
+    data = run.data.source + (f" {run.data.data_dir}" if run.data.source != "synthetic" and run.data.data_dir else "")
+    cycles = f"{dataset_size} cycles" if dataset_size is not None else "cycles of unknown number"
+    val = ("off" if not val_data else f"{len(val_data[1])} {val_data[0]} cycles" if val_data[0] == "synthetic"
+           else f"{len(val_data[1])} held-out cycles of {run.data.val_dir}")
+    start = f"resuming at step {start_step}" if start_step else "from scratch" + (
+        f" (params from {run.init_from})" if run.init_from else "")
+    return (f"train: config {config_name or '(given)'} | model {run.model.config['name']} | data {data}: {cycles} | "
+            f"validation {val} | {devices} | {run.height}x{run.width}, batch {run.global_batch}, {num_steps} steps, "
+            f"{start} | workdir {workdir}")
 
 
 # ##########################################################################################################
@@ -418,30 +590,123 @@ def enable_compilation_cache(path: str, workdir: str) -> str | None:
     return path
 
 
-def main(argv):
-    if len(argv) > 1:
-        raise SystemExit(f"error: unexpected arguments {argv[1:]} (options are --config=..., --workdir=...)")
-    FLAGS = flags.FLAGS
+def _config_epilog() -> str:
+    lines = ["Configs shipped in the package (--config=NAME[:arg]):"]
+    for name in configs.names():
+        lines.append(f"  {name:14s} {configs.summary(name)}")
+    lines += ["", "Data sources (--config.data.source=...):",
+              "  synthetic      built-in procedural stereo video with exact ground truth, rendered on the fly (default)",
+              "  folder         your own rectified stereo video: --config.data.data_dir=DIR, layouts:",
+              *(f"                 {line}" for line in folders.LAYOUT_HELP.splitlines()),
+              "  kitti_raw      KITTI raw drives (--config.data.data_dir=ROOT, --config.data.split=eigen|kitti|all)",
+              "  tfds           the kitti_cycles TFDS ArrayRecord build (--config.data.data_dir=TFDS_DIR)"]
+    return "\n".join(lines)
+
+
+def build_parser():
+    p = cli.make_parser("bridge_jax.train", __doc__)
+    p.epilog = (p.epilog or "") + "\n\n" + _config_epilog()
+    p.add_argument("--config", required=True, metavar="NAME[:arg]|FILE.py[:arg]",
+                   help=f"training config: a name ({', '.join(configs.names())}) or a Python file with get_config()")
+    p.add_argument("--workdir", required=True, help="folder for checkpoints, logs and metrics (resumed if it has any)")
+    p.add_argument("--verbosity", default="warning", choices=("debug", "info", "warning", "error"),
+                   help="log level of the libraries (absl, orbax, grain); info shows orbax's checkpoint messages")
+    cli.add_debug_flag(p)
+    return p
+
+
+def split_config_overrides(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(other arguments, ["KEY=VALUE", ...]) from `--config.KEY=VALUE` / `--config.KEY VALUE` arguments."""
+    rest, items, i = [], [], 0
+    argv = list(argv)
+    while i < len(argv):
+        arg = argv[i]
+        if arg.startswith("--config."):
+            body = arg[len("--config."):]
+            if "=" not in body:
+                if i + 1 >= len(argv):
+                    raise ConfigError(f"{arg}: expected {arg}=VALUE")
+                body, i = f"{body}={argv[i + 1]}", i + 1
+            items.append(body)
+        else:
+            rest.append(arg)
+        i += 1
+    return rest, items
+
+
+def load_config(spec: str, overrides: Sequence[str]) -> ml_collections.ConfigDict:
+    """The config `spec` (name or file) with `overrides` applied; ConfigError (one line) naming the config file,
+    or the misspelt key and its close matches."""
     try:
-        run = setup.parse(FLAGS.config)
-        enable_compilation_cache(run.compilation_cache_dir, FLAGS.workdir)
-        result = train_and_evaluate(run, FLAGS.workdir)
+        config = configs.load(spec)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
+    except Exception as e:  # an error inside the user's config file
+        raise ConfigError(f"--config {spec}: the config file failed: {type(e).__name__}: {e}") from e
+    known = _flat_keys(config)
+    for item in overrides:
+        try:
+            configs.override(config, [item])
+        except ValueError as e:
+            key = item.partition("=")[0]
+            close = [] if key in known else difflib.get_close_matches(key, known, n=3, cutoff=0.75)
+            hint = f"; did you mean {', '.join('--config.' + c for c in close)}?" if close else ""
+            raise ConfigError(f"--config.{item}: {str(e).split(': ', 1)[-1]}{hint}") from e
+    return config
+
+
+def _flat_keys(config, prefix: str = "") -> list[str]:
+    """The dotted names of the settable (leaf) fields."""
+    out = []
+    for k, v in config.items():
+        if isinstance(v, ml_collections.ConfigDict):
+            out.extend(_flat_keys(v, f"{prefix}{k}."))
+        else:
+            out.append(prefix + k)
+    return out
+
+
+def _set_verbosity(level: str) -> None:
+    """Logs (absl: orbax, grain; bridge_jax) at `level`: the default, warning, still shows skipped data and
+    checkpoint fallbacks; info adds orbax's checkpoint messages and the data pre-scan."""
+    from absl import logging as absl_logging
+    num = getattr(logging, level.upper())
+    absl_logging.set_verbosity(absl_logging.converter.standard_to_absl(num))
+    logging.getLogger("absl").setLevel(num)
+    if num < logging.WARNING:
+        absl_logging.use_absl_handler()
+    logging.getLogger("bridge_jax").setLevel(num)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """`python -m bridge_jax.train` / `bridge-train`; returns the exit code (see the module docstring)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    debug = cli.debug_enabled() or "--debug" in argv
+    try:
+        rest, items = split_config_overrides(argv)
     except ConfigError as e:
-        raise SystemExit(cli.report_error(e))
+        return cli.report_error(e, debug=debug)
+    args = parser.parse_args(rest)
+    _set_verbosity(args.verbosity)
+    try:
+        config = load_config(args.config, items)
+        result = train_and_evaluate(config, args.workdir, enable_cache=True, config_name=args.config)
     except TrainingDiverged as e:
-        raise SystemExit(cli.report_error(e, code=1))
-    msg = "interrupted; checkpoint saved" if result["interrupted"] else "done"
+        return cli.report_error(e, code=EXIT_DIVERGED, debug=args.debug)
+    except (ValueError, OSError) as e:  # ConfigError, unreadable data, a full disk, a broken checkpoint: one line
+        return cli.report_error(e, code=EXIT_BAD_INPUT, debug=args.debug)
+    except RuntimeError as e:  # orbax / tensorstore report a full disk from their writer threads like this
+        if not any(t in str(e) for t in ("RESOURCE_EXHAUSTED", "No space left", "Disk quota")):
+            raise
+        return cli.report_error(RuntimeError(f"--workdir={args.workdir}: the disk is full "
+                                             f"({str(e).strip().splitlines()[0][:200]})"), code=EXIT_BAD_INPUT,
+                                debug=args.debug)
+    msg = "interrupted; checkpoint saved (run the same command to resume)" if result["interrupted"] else "done"
     print(f"{msg}: step {result['step']}, checkpoint {result['checkpoint']}, metrics "
           f"{os.path.join(result['workdir'], 'metrics.jsonl')}", flush=True)
-
-
-def _define_flags():
-    config_flags.DEFINE_config_file("config", None, "Training config file, e.g. bridge_jax/configs/default.py[:arg].",
-                                    lock_config=True)
-    flags.DEFINE_string("workdir", None, "Directory for checkpoints, logs and metrics (resumed if it has any).")
-    flags.mark_flags_as_required(["config", "workdir"])
+    return EXIT_INTERRUPTED if result["interrupted"] else EXIT_FINISHED
 
 
 if __name__ == "__main__":
-    _define_flags()
-    app.run(main)
+    sys.exit(main())

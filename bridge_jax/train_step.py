@@ -10,7 +10,7 @@ and one training step on a batch of cycles (B, 4, H, W, 3) float32 in [0, 1] (`t
 2. the network on all of them (forward and backward maps, 4 scales),
 3. the cycle loss (`losses.cycle_loss`, vmapped over cycles) and its gradient,
 4. Adam with the step-based MultiStepLR schedule, and
-5. a guard: a non-finite loss or gradient leaves the state unchanged (the step is "skipped").
+5. a guard: a non-finite loss, gradient, update or new parameter leaves the state unchanged (the step is "skipped").
 
 `make_train_step` jits it once per input shape with the state donated (the default on GPU/TPU);
 `bridge_jax.micro_batch` computes the same update maps-first in small jitted pieces for XLA:CPU, and
@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +61,8 @@ class OptimizerConfig:
     clip_grad_norm: float = 0.0
 
     def __post_init__(self):
+        if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be a finite number > 0, got {self.lr!r}")
         if not self.clip_grad_norm >= 0:
             raise ValueError(f"clip_grad_norm must be >= 0 (0 = off), got {self.clip_grad_norm!r}")
 
@@ -107,13 +110,16 @@ def _all_finite(tree) -> jax.Array:
 def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     """Adam update with the non-finite guard. Returns (new_state, metrics).
 
-    If the loss or any gradient is NaN/Inf the returned state equals `state` (nothing moves, not even
-    `step` or the optimiser's moments) and metrics["nonfinite"] = 1.
+    If the loss, any gradient, the update or any new parameter is NaN/Inf the returned state equals `state`
+    (nothing moves, not even `step` or the optimiser's moments) and metrics["nonfinite"] = 1. Checking the
+    update and the new params too matters: finite gradients can still give a poisoned update (an infinite
+    learning rate, Adam's moments overflowing), and a NaN state once accepted is saved as "good".
     """
-    ok = jnp.isfinite(loss) & _all_finite(grads)
     params, opt_state = state["params"], state["opt_state"]
     updates, new_opt_state = tx.update(grads, opt_state, params)
     new_params = optax.apply_updates(params, updates)
+    ok = (jnp.isfinite(loss) & _all_finite(grads) & _all_finite(updates) & _all_finite(new_params)
+          & _all_finite(new_opt_state))
     new_state = {"params": new_params, "opt_state": new_opt_state, "step": state["step"] + 1,
                  "rng": jax.random.fold_in(state["rng"], 0)}
     new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, state)

@@ -8,7 +8,8 @@
   With image axes (x right, y down) that gives: **right → red, down → yellow/orange, left → cyan,
   up → blue/violet** (:data:`DIRECTION_HUES`). :func:`color_wheel_legend` draws the key.
 * :func:`disparity_to_color` / :func:`depth_to_color` / :func:`error_to_color` — OpenCV colormaps, with
-  :func:`colorbar` drawing the matching legend image.
+  :func:`colorbar` drawing the matching legend image (:func:`error_colorbar` for error maps) and
+  :func:`attach_colorbar` placing one beside a picture.
 * :func:`panel` — side-by-side grid of labelled images (input, prediction, GT, error) used by predict, evaluate
   and the trainer's TensorBoard images; :func:`prediction_panel` is the one-call ``input | flow | disparity``.
 
@@ -204,10 +205,17 @@ def _inverse_position(value: np.ndarray, vmin: float, vmax: float) -> np.ndarray
     return (1.0 / value - 1.0 / vmax) / (1.0 / vmin - 1.0 / vmax)
 
 
-def error_to_color(err: np.ndarray, valid: Optional[np.ndarray] = None, max_err: float = 12.0,
-                   colormap: str = "jet") -> np.ndarray:
+ERROR_MAX_PX = 12.0
+"""End-point error (pixels) drawn at the top of :func:`error_to_color`'s scale (and everything above it)."""
+ERROR_COLORMAP = "jet"
+"""The colormap of :func:`error_to_color` (blue = 0, red = large)."""
+
+
+def error_to_color(err: np.ndarray, valid: Optional[np.ndarray] = None, max_err: float = ERROR_MAX_PX,
+                   colormap: str = ERROR_COLORMAP) -> np.ndarray:
     """Colour-coded end-point error (pixels), on a log scale ``log(1 + e) / log(1 + max_err)`` (blue = 0,
-    red ≥ ``max_err``); invalid pixels black. Legend: ``colorbar(0, max_err, colormap, log=True, unit="px")``."""
+    red ≥ ``max_err``); invalid pixels black. Legend: :func:`error_colorbar` (= ``colorbar(0, max_err,
+    colormap, log=True, unit="px")``)."""
     err = np.asarray(err, np.float64)
     ok = _finite_mask(err, valid)
     t = np.log1p(np.maximum(err, 0.0)) / np.log1p(max_err)
@@ -268,6 +276,25 @@ def colorbar(vmin: float, vmax: float, colormap: str = "magma", *, height: int =
         cv2.line(img, (22, y), (27, y), (0, 0, 0), 1)
         _text(img, f"{v:g}{unit}", (29, y + 4), 0.35, (0, 0, 0))
     return img
+
+
+def error_colorbar(height: int = 256, max_err: float = ERROR_MAX_PX, colormap: str = ERROR_COLORMAP,
+                   label: str = "error") -> np.ndarray:
+    """The legend of :func:`error_to_color` with the same ``max_err`` and ``colormap``: a ``(height, 80, 3)``
+    uint8 RGB colour bar, 0 px at the bottom, ``max_err`` px at the top, log-spaced ticks in px."""
+    return colorbar(0.0, max_err, colormap, height=height, unit="px", label=label, log=True)
+
+
+def attach_colorbar(image: np.ndarray, bar: np.ndarray, gap: int = 4) -> np.ndarray:
+    """``image (H, W, 3)`` with ``bar (h, w, 3)`` to its right after a white ``gap``, both top-aligned:
+    ``(max(H, h), W + gap + w, 3)`` uint8 RGB, white where neither covers (so the bar can be read next to a
+    whole panel without resizing, which would blur its tick labels)."""
+    image, bar = to_uint8(image), to_uint8(bar)
+    h = max(image.shape[0], bar.shape[0])
+    out = np.full((h, image.shape[1] + gap + bar.shape[1], 3), 255, np.uint8)
+    out[:image.shape[0], :image.shape[1]] = image
+    out[:bar.shape[0], image.shape[1] + gap:] = bar
+    return out
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:

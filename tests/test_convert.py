@@ -2,6 +2,7 @@
 error reporting, and numerical parity with the upstream network (the fixture, see tests/fixture.py)."""
 
 import io
+import re
 import struct
 import zipfile
 
@@ -262,6 +263,48 @@ def test_not_an_upstream_checkpoint(tmp_path, capsys, kind):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("error:")
     assert not (tmp_path / "o").exists()
+
+
+def test_non_finite_weights_refused_by_name_and_nothing_written(tmp_path, capsys):
+    sd = tiny_state_dict(np.random.default_rng(3))
+    sd["up3.conv2.weight"][0, 0, 0, :3] = [np.nan, np.inf, -np.inf]  # OIHW: 3 bad values in one kernel
+    sd["up2.conv1.weight"][1, 1, 1, 1] = np.nan  # bad too and first in tree order (up2 < up3): the one named
+    tensors = [_Tensor(str(i), v) for i, v in enumerate(sd.values())]
+    src = tmp_path / "nan.pth"
+    write_pth(src, dict(zip(sd, tensors)), tensors)
+    out = tmp_path / "out"
+    assert convert.main(["--from", str(src), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {src}: parameter up2/conv1/kernel has 1 non-finite values (NaN/Inf); these weights are " \
+                  "unusable (the run that wrote them diverged, or the file is corrupt)\n"
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+    sd["up2.conv1.weight"][1, 1, 1, 1] = 0.0
+    tensors = [_Tensor(str(i), v) for i, v in enumerate(sd.values())]
+    write_pth(src, dict(zip(sd, tensors)), tensors)
+    with pytest.raises(ValueError, match=r"^" + re.escape(f"{src}: parameter up3/conv2/kernel has 3 non-finite")):
+        convert.convert(src, out)  # the library call refuses it too, naming the file
+    assert not out.exists()
+
+
+def test_cli_help_has_an_example_and_every_option_a_help_text(capsys):
+    with pytest.raises(SystemExit) as e:
+        convert.main(["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith("usage: python -m bridge_jax.convert ")
+    assert "\n    python -m bridge_jax.convert --from monodepth_ver_a.pth --out checkpoints/ver_a\n" in text
+    actions = [a for a in convert.build_parser()._actions if a.option_strings]
+    assert {a.dest for a in actions} == {"help", "src", "out", "model", "overwrite", "debug"}
+    assert [a.dest for a in actions if not a.help] == []  # argparse keeps None where help= was left out
+
+
+def test_cli_debug_shows_the_traceback(tmp_path, capsys):
+    src = tmp_path / "x.pth"
+    src.write_text("hello")
+    assert convert.main(["--from", str(src), "--out", str(tmp_path / "o"), "--debug"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err
+    assert err.strip().splitlines()[-1] == f"error: {src}: not a PyTorch checkpoint (starts with bytes b'hell')"
 
 
 # ---------------------------------------------------------------- parity with upstream PyTorch (fixture)

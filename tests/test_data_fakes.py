@@ -4,6 +4,7 @@ import os
 import struct
 import zlib
 
+import cv2
 import numpy as np
 
 from bridge_jax.data import kitti
@@ -42,6 +43,24 @@ def make_fake_raw(root, drives, height=16, width=32, ext=".png", seed=0):
 def _mk(d):
     os.makedirs(d, exist_ok=True)
     return d
+
+
+def write_stereo_sequence(root, stems, size=(8, 12), ext=".png", sizes=None, seed=0):
+    """Writes ROOT/left/<stem><ext> and ROOT/right/<stem><ext> for every stem with cv2.imwrite: random uint8
+    colour images of `size` (h, w); `sizes` = {"right/0003.png": (h, w), ...} overrides single files.
+    Returns {relative path: absolute path}."""
+    rng = np.random.default_rng(seed)
+    sizes = dict(sizes or {})
+    out = {}
+    for side in ("left", "right"):
+        d = _mk(os.path.join(root, side))
+        for stem in stems:
+            rel = f"{side}/{stem}{ext}"
+            h, w = sizes.get(rel, size)
+            path = os.path.join(d, f"{stem}{ext}")
+            assert cv2.imwrite(path, rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+            out[rel] = path
+    return out
 
 
 def truncate_file(path, keep=0.5):

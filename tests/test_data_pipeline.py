@@ -194,7 +194,11 @@ def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
         got = [loader(i)["id"] for i in range(3)]
     assert got == ["2011_09_26_drive_0001/0000000000"] * 3          # 1 and 2 replaced by the next valid (0)
     counts = pipeline.skip_counts()
-    assert counts["count"] == 3 and set(counts["paths"]) == {bad}
+    assert counts["count"] == 2 and counts["paths"] == [bad]       # cycles 1 and 2, each once
+    rep = pipeline.skip_report()
+    assert rep["cycles"] == 2 and rep["files"] == [bad] and "truncated PNG" in rep["causes"][bad]
+    assert [loader(i)["id"] for i in (1, 2)] == ["2011_09_26_drive_0001/0000000000"] * 2
+    assert pipeline.skip_report()["cycles"] == 2                  # met again: not counted again
     assert bad in caplog.text
     # A missing file that is listed (deleted after listing) is skipped the same way.
     os.remove(os.path.join(data, "image_02", "data", "0000000000.png"))
@@ -208,7 +212,8 @@ def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
     it = iter(ds)
     out = [next(it)["cycle"] for _ in range(4)]
     assert all(o.shape == (1, 4, 8, 12, 3) and np.allclose(o, 7 / 255) for o in out)
-    assert pipeline.skip_counts()["count"] == 2
+    rep = pipeline.skip_report()
+    assert rep["cycles"] == 1 and rep["files"] == [os.path.join(root, "bad.png")]   # met twice, counted once
 
 
 def _valid_plus_corrupt(root):

@@ -174,6 +174,36 @@ def test_evaluate_end_to_end_tiny_checkpoint(synthetic_dir, tiny_checkpoint, tmp
     assert "model" not in json.loads((out / "results.json").read_text())["methods"]
 
 
+def test_error_panels_carry_the_error_colour_bar():
+    import cv2
+    from bridge_jax import visualize
+    from bridge_jax.eval import report
+    h, w = 32, 64
+    flow_gt = np.zeros((h, w, 2), np.float32)
+    disp_gt = np.full((h, w), 10.0, np.float32)
+    frame = datasets.Frame("f", {"left_t": np.zeros((h, w, 3), np.uint8)},
+                           {"flow_occ": flow_gt, "flow_occ_valid": np.ones((h, w), bool), "disp_occ_0": disp_gt})
+    pred = {"flow": flow_gt + 1.0, "disp_t": disp_gt + 2.0}
+    p = report.frame_panel(frame, pred)
+    # 7 tiles (left, flow, flow GT, flow error, disparity, disparity GT, disparity error) in rows of 4 with 4 px
+    # gaps: the grid is 2·32 + 4 = 68 rows by 4·64 + 3·4 = 268 columns; then a 4 px gap and the 80 px wide bar,
+    # at least 96 rows tall
+    assert p.shape == (96, 268 + 4 + 80, 3)
+    bar = visualize.colorbar(0.0, 12.0, "jet", height=96, unit="px", label="error", log=True)
+    np.testing.assert_array_equal(p[:, 272:], bar)
+    assert (p[:, 268:272] == 255).all() and (p[68:, :268] == 255).all()
+    # the bar's colours are the error map's: its top is jet's top (12 px and above), its bottom jet's 0
+    def jet(i):
+        return cv2.applyColorMap(np.array([[i]], np.uint8), cv2.COLORMAP_JET)[0, 0, ::-1].tolist()
+    assert p[24, 282].tolist() == jet(255) and p[85, 282].tolist() == jet(0)
+    # the flow error tile (row 0, column 3; below its caption) shows EPE √2 px: log1p(√2)/log1p(12) of the scale
+    t = np.log1p(np.sqrt(2.0)) / np.log1p(12.0)
+    assert p[h - 1, 3 * (w + 4) + w - 1].tolist() == jet(int(np.round(t * 255)))
+    # without GT there is no error map, hence no bar: three tiles (left, flow, disparity) only
+    bare = datasets.Frame("g", {"left_t": np.zeros((h, w, 3), np.uint8)}, {})
+    assert report.frame_panel(bare, {"flow": flow_gt, "disp_t": disp_gt}).shape == (h, 3 * w + 8, 3)
+
+
 def test_bad_inputs(synthetic_dir, tmp_path, capsys):
     assert evaluate.main(["--dataset", "synthetic", "--data-dir", str(tmp_path / "nope"), "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
@@ -195,6 +225,31 @@ def test_bad_inputs(synthetic_dir, tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(tmp_path) in err[0]
+
+
+def test_working_size_error_names_the_option(synthetic_dir, tiny_checkpoint, tmp_path, capsys):
+    rc = evaluate.main(["--checkpoint", tiny_checkpoint, "--dataset", "synthetic", "--data-dir", synthetic_dir,
+                        "--working-size", "100x200", "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and not (tmp_path / "o").exists()
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: --working-size 100x200: height and width must be multiples of 64 for model resnet_md_tiny "
+        "(try 128x192)"]
+    assert evaluate.main(["--dataset", "synthetic", "--data-dir", synthetic_dir, "--max-frames", "0"]) == 2
+    assert "--max-frames" in capsys.readouterr().err
+
+
+def test_help_teaches():
+    parser = evaluate.build_parser()
+    assert [a.option_strings for a in parser._actions if not a.help] == []
+    text = parser.format_help()
+    assert "python -m bridge_jax.evaluate --checkpoint" in text and "pictures/<frame id>.png" in text
+    assert "shipped model name such as demo" in text and "--debug" in text
+    # the flags parse as documented
+    args = parser.parse_args(["--dataset", "synthetic", "--data-dir", "d"])
+    assert (args.no_baselines, args.no_garg_crop, args.no_progress) == (False, False, False)
+    args = parser.parse_args(["--dataset", "synthetic", "--data-dir", "d", "--no-baselines", "--no-progress"])
+    assert args.no_baselines and args.no_progress
+    assert not parser.parse_args(["--dataset", "folder", "--data-dir", "d", "--no-baselines", "--baselines"]).no_baselines
 
 
 def _velodyne_points_for(calib_dir, pixels, depths):

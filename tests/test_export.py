@@ -37,10 +37,38 @@ def test_export_cli(tiny_ckpt, tmp_path, capsys):
     assert rc == 0 and out.is_file()
     exp = export.load_exported(out)
     assert exp.in_avals[0].shape == (1, 64, 128, 6)
+    capsys.readouterr()
     # bad input: one-line error, exit != 0, nothing written
     bad = tmp_path / "bad.stablehlo"
     assert export.main(["--checkpoint", str(path), "--out", str(bad), "--height", "100"]) == 2
+    # the width not given is the default 512 (a params-only checkpoint has no trained size)
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: --height/--width 100x512: height and width must be multiples of 64 for model resnet_md_tiny "
+        "(try 128x512)"]
     assert export.main(["--checkpoint", str(tmp_path / "nope"), "--out", str(bad)]) == 2
+    assert export.main(["--checkpoint", str(path), "--out", str(bad), "--batch", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(e.startswith("error:") for e in err)
+    assert "nope" in err[0] and "--batch" in err[1]
     assert not bad.exists()
+
+
+def test_export_defaults_to_the_trained_size(tiny_ckpt, tmp_path, capsys):
+    import json
+    import shutil
+    _, _, path = tiny_ckpt
+    ck = tmp_path / "trained"
+    shutil.copytree(path, ck)
+    (ck / "config.json").write_text(json.dumps({"height": 64, "width": 192}))   # what training writes beside it
+    out = tmp_path / "t.stablehlo"
+    assert export.main(["--checkpoint", str(ck), "--out", str(out)]) == 0
+    assert export.load_exported(out).in_avals[0].shape == (1, 64, 192, 6)
+    assert json.loads(capsys.readouterr().out)["input"] == [1, 64, 192, 6]
+
+
+def test_export_help():
+    parser = export.build_parser()
+    assert [a.option_strings for a in parser._actions if not a.help] == []
+    text = parser.format_help()
+    assert "python -m bridge_jax.export --checkpoint demo --out demo.stablehlo" in text
+    assert "shipped model name such as demo" in text and "--debug" in text

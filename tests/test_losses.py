@@ -125,7 +125,7 @@ def test_photometric_zero_for_exact_maps_and_larger_for_wrong_signs():
     _, bad2 = cycle_loss(swapped, jnp.asarray(cycle), cfg)
     assert float(bad2["photo_fwd"]) > 5 * float(terms["photo_fwd"])
     # the LR term is zero for exact maps
-    assert float(terms["lr"]) < 1e-6
+    assert float(terms["left_right"]) < 1e-6
 
 
 @pytest.mark.parametrize("variant", ["full1", "full2", "full3"])
@@ -181,7 +181,7 @@ def test_batch_of_identical_cycles_equals_one_cycle(rng, reduction, b):
     bmaps = {k: tuple(jnp.concatenate([m] * b) for m in v) for k, v in maps.items()}
     total, terms = cycle_loss(bmaps, cycles, cfg)
     np.testing.assert_allclose(total, one, rtol=1e-5)
-    np.testing.assert_allclose(terms["lr"], t1["lr"], rtol=1e-5)
+    np.testing.assert_allclose(terms["left_right"], t1["left_right"], rtol=1e-5)
     np.testing.assert_allclose(terms["two_warp"], t1["two_warp"], rtol=1e-5)
 
 
@@ -204,7 +204,7 @@ def test_task_variants_use_their_pairs(rng):
     c = jnp.asarray(cycle)
     st, st_terms = cycle_loss(maps, c, losses.LossConfig(tasks="stereo_only", lambda_lr=1.0))
     fl, fl_terms = cycle_loss(maps, c, losses.LossConfig(tasks="flow_only"))
-    assert float(fl_terms["lr"]) == 0.0 and float(st_terms["lr"]) > 0
+    assert float(fl_terms["left_right"]) == 0.0 and float(st_terms["left_right"]) > 0
     # passing only the active pairs' rows gives the same value as passing all 8
     idx = np.array([0, 3, 4, 7])
     sub = {k: tuple(m[idx] for m in v) for k, v in maps.items()}

@@ -1,13 +1,15 @@
-"""predict: pair, cycle, folder, video (mono / side-by-side stereo), KITTI submission round trip, bad input."""
+"""predict: pair, cycle, folder, video (mono / side-by-side stereo), output names and predict.json's mapping,
+raw .flo / .pfm outputs, KITTI submission round trip, bad input, --help."""
 
 import json
 import os
+import struct
 
 import cv2
 import numpy as np
 import pytest
 
-from bridge_jax import inference, predict
+from bridge_jax import flowio, inference, predict
 from bridge_jax.eval import datasets, methods
 
 H, W = 100, 200          # input resolution, deliberately not the working size (128×256)
@@ -51,20 +53,28 @@ def _run(args):
 
 
 def test_pair(tiny_checkpoint, frames, tmp_path):
-    a, b = _write(tmp_path / "a.png", frames[0]), _write(tmp_path / "b.jpg", frames[1])
+    a, b = _write(tmp_path / "frame0.png", frames[0]), _write(tmp_path / "frame1.jpg", frames[1])
     out = tmp_path / "out"
     assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(out), "--working-size", "128x256",
-                 "--raw", "png,npy"]) == 0
-    _decodable(out / "flow" / "000000.png")
+                 "--raw", "png,npy,flo"]) == 0
+    # outputs keep the stem of the frame-t image
+    assert sorted(os.listdir(out / "flow")) == ["frame0.png"]
+    _decodable(out / "flow" / "frame0.png")
     from bridge_jax.data import kitti
-    flow, valid = kitti.read_flow_png(str(out / "flow_kitti" / "000000.png"))
+    flow, valid = kitti.read_flow_png(str(out / "flow_kitti" / "frame0.png"))
     assert flow.shape == (H, W, 2) and valid.all()
-    npy = np.load(out / "flow_npy" / "000000.npy")
+    npy = np.load(out / "flow_npy" / "frame0.npy")
     assert npy.shape == (H, W, 2) and npy.dtype == np.float32
     np.testing.assert_allclose(flow, npy, atol=1 / 64 + 1e-6)      # KITTI PNG quantises to 1/64 px
+    # the .flo is exactly the float32 values: magic, width, height, then u, v interleaved, top row first
+    data = (out / "flow_flo" / "frame0.flo").read_bytes()
+    assert data[:12] == b"PIEH" + struct.pack("<ii", W, H) and len(data) == 12 + H * W * 8
+    assert data[12:] == npy.astype("<f4").tobytes()
     _decodable(out / "legend_flow.png", (256, 256))
     desc = json.loads((out / "predict.json").read_text())
     assert desc["kind"] == "pair" and desc["outputs"] == {"flow": 1}
+    assert desc["raw"] == ["flo", "npy", "png"]
+    assert desc["mapping"] == [{"index": 0, "stem": "frame0", "inputs": {"image": a}, "flow_to": {"image": b}}]
 
 
 def test_stereo_pair_with_depth(predictor, frames, tmp_path):
@@ -72,13 +82,25 @@ def test_stereo_pair_with_depth(predictor, frames, tmp_path):
     a, b = _write(tmp_path / "a.png", frames[0]), _write(tmp_path / "b.png", frames[1])
     out2 = tmp_path / "out2"
     src = predict.open_inputs([a, b], pair_kind="stereo")
-    predict.predict_source(predictor, src, str(out2), focal=100.0, baseline=0.5, progress=False, raw=("png",))
-    _decodable(out2 / "disparity" / "000000.png")
-    _decodable(out2 / "depth" / "000000.png")
-    disp = _disp(kitti.read_disp_png(str(out2 / "disparity_kitti" / "000000.png")))
+    desc = predict.predict_source(predictor, src, str(out2), focal=100.0, baseline=0.5, progress=False,
+                                  raw=("png", "npy", "pfm", "flo"))
+    _decodable(out2 / "disparity" / "a.png")
+    _decodable(out2 / "depth" / "a.png")
+    disp = _disp(kitti.read_disp_png(str(out2 / "disparity_kitti" / "a.png")))
     assert disp.shape == (H, W)
     for leg in ("legend_disparity.png", "legend_depth.png"):
         assert (out2 / leg).is_file()
+    # .pfm: "Pf", width height, scale -1.0 (little-endian), then the rows from the bottom up
+    npy = np.load(out2 / "disparity_npy" / "a.npy")
+    header = f"Pf\n{W} {H}\n-1.0\n".encode()
+    data = (out2 / "disparity_pfm" / "a.pfm").read_bytes()
+    assert data == header + npy[::-1].astype("<f4").tobytes()
+    depth = flowio.read_pfm(out2 / "depth_pfm" / "a.pfm")
+    np.testing.assert_array_equal(depth, np.load(out2 / "depth_npy" / "a.npy"))
+    ok = npy > 1.0                                           # depth = f·B/d = 100·0.5/d (unclamped there)
+    np.testing.assert_allclose(depth[ok], 50.0 / npy[ok], rtol=1e-5)
+    assert not (out2 / "flow_flo").exists()                  # a stereo pair has no flow, hence no .flo
+    assert desc["mapping"] == [{"index": 0, "stem": "a", "inputs": {"left": a, "right": b}}]
 
 
 def test_cycle_folder_and_stereo_folder(predictor, frames, tmp_path):
@@ -86,11 +108,18 @@ def test_cycle_folder_and_stereo_folder(predictor, frames, tmp_path):
     src = predict.open_inputs(paths)
     assert src.kind == "cycle"
     out = tmp_path / "cycle"
-    predict.predict_source(predictor, src, str(out), progress=False)
-    for sub, n in (("disparity", 2), ("flow", 1), ("disparity_t1_in_t", 1)):
-        assert sorted(os.listdir(out / sub)) == [f"{i:06d}.png" for i in range(n)]
+    desc = predict.predict_source(predictor, src, str(out), progress=False)
+    # frame t is named after left_t ("lt"), frame t+1 after left_t1 ("lt1")
+    for sub, names in (("disparity", ["lt.png", "lt1.png"]), ("flow", ["lt.png"]),
+                       ("disparity_t1_in_t", ["lt.png"]), ("disparity_kitti", ["lt.png", "lt1.png"])):
+        assert sorted(os.listdir(out / sub)) == names
         for f in os.listdir(out / sub):
             _decodable(out / sub / f)
+    assert desc["mapping"] == [
+        {"index": 0, "stem": "lt", "inputs": {"left": paths[0], "right": paths[1]},
+         "flow_to": {"left": paths[2], "right": paths[3]}},
+        {"index": 1, "stem": "lt1", "inputs": {"left": paths[2], "right": paths[3]}}]
+    assert json.loads((out / "predict.json").read_text())["mapping"] == desc["mapping"]
     # mono folder: flow between consecutive frames
     folder = tmp_path / "mono"
     folder.mkdir()
@@ -98,7 +127,7 @@ def test_cycle_folder_and_stereo_folder(predictor, frames, tmp_path):
         _write(folder / f"f{i:02d}.png", frames[i])
     out = tmp_path / "mono_out"
     predict.predict_source(predictor, predict.open_inputs([str(folder)]), str(out), progress=False, batch=4)
-    assert sorted(os.listdir(out / "flow")) == ["000000.png", "000001.png"]
+    assert sorted(os.listdir(out / "flow")) == ["f00.png", "f01.png"]
     assert not (out / "disparity").exists()
     # stereo folder (left/ right/)
     st = tmp_path / "stereo"
@@ -109,7 +138,33 @@ def test_cycle_folder_and_stereo_folder(predictor, frames, tmp_path):
         _write(st / "right" / f"{i}.png", frames[i + 1])
     out = tmp_path / "stereo_out"
     predict.predict_source(predictor, predict.open_inputs([str(st)]), str(out), progress=False)
-    assert len(os.listdir(out / "disparity")) == 2 and len(os.listdir(out / "flow")) == 1
+    assert sorted(os.listdir(out / "disparity")) == ["0.png", "1.png"] and os.listdir(out / "flow") == ["0.png"]
+
+
+def test_unique_stems():
+    assert predict.unique_stems(["a/frame.png", "b/frame.png", "c/x.jpg"]) == ["frame", "frame_2", "x"]
+    # a suffix never takes a name that another input has; compared case-insensitively
+    assert predict.unique_stems(["a/f.png", "b/f.png", "f_2.png"]) == ["f", "f_3", "f_2"]
+    assert predict.unique_stems(["a/F.png", "b/f.png"]) == ["F", "f_2"]
+
+
+def test_shared_stems_stay_apart(predictor, frames, tmp_path):
+    # a cycle whose t and t+1 left images have the same file name, in different folders
+    for d in ("t", "t1"):
+        (tmp_path / d).mkdir()
+    paths = [_write(tmp_path / "t" / "left.png", frames[0]), _write(tmp_path / "t" / "right.png", frames[1]),
+             _write(tmp_path / "t1" / "left.png", frames[1]), _write(tmp_path / "t1" / "right.png", frames[2])]
+    out = tmp_path / "out"
+    desc = predict.predict_source(predictor, predict.open_inputs(paths), str(out), progress=False, raw=("npy",))
+    assert sorted(os.listdir(out / "disparity")) == ["left.png", "left_2.png"]
+    assert sorted(os.listdir(out / "disparity_npy")) == ["left.npy", "left_2.npy"]
+    assert [(m["stem"], m["inputs"]["left"]) for m in desc["mapping"]] == [("left", paths[0]),
+                                                                           ("left_2", paths[2])]
+    # the two disparities really are the two frames' (frame t+1 is its own prediction, not frame t's again)
+    d0, d1 = predictor.predict([("stereo", frames[0], frames[1]), ("stereo", frames[1], frames[2])])
+    assert np.abs(d0 - d1).max() > 0.1
+    np.testing.assert_allclose(np.load(out / "disparity_npy" / "left.npy"), d0, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(np.load(out / "disparity_npy" / "left_2.npy"), d1, rtol=1e-5, atol=1e-4)
 
 
 def _write_video(path, imgs, fps=5):
@@ -139,7 +194,9 @@ def test_video_mono_and_side_by_side(predictor, frames, tmp_path):
     out = tmp_path / "vout"
     desc = predict.predict_source(predictor, predict.open_inputs([video]), str(out), progress=False)
     assert desc["frames"] == 3
-    assert sorted(os.listdir(out / "flow")) == ["000000.png", "000001.png"]
+    assert sorted(os.listdir(out / "flow")) == ["000000.png", "000001.png"]   # video: frame index numbering
+    assert desc["mapping"][1] == {"index": 1, "stem": "000001", "inputs": {"video": video, "frame": 1},
+                                  "flow_to": {"video": video, "frame": 2}}
     n, shape = _count_video(out / "video.mp4")
     assert n == 3 and shape[0] == H and shape[1] > 2 * W        # panel: input | flow
     sbs = _write_video(tmp_path / "sbs.avi", [np.concatenate([f, g], 1) for f, g in zip(frames[:2], frames[1:3])])
@@ -209,6 +266,48 @@ def test_bad_inputs(tiny_checkpoint, frames, tmp_path, capsys):
     assert "broken.mp4" in capsys.readouterr().err
     assert _run(["--checkpoint", str(tmp_path / "missing_ckpt"), a, b, "--out", str(tmp_path / "o3")]) == 2
     assert "missing_ckpt" in capsys.readouterr().err
+    # a working size that is not a multiple of the model's 64: the option is blamed, with a size to try
+    assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(tmp_path / "o4"),
+                 "--working-size", "100x200"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: --working-size 100x200: height and width must be multiples of 64 for model "
+                   "resnet_md_tiny (try 128x192)"]
+    assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(tmp_path / "o5"), "--raw", "png,tiff"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--raw png,tiff" in err[0] and "tiff" in err[0] and "flo" in err[0]
     # nothing half-written next to the requested outputs
     leftovers = [f for f in os.listdir(tmp_path) if f.startswith(".")]
-    assert leftovers == [] and not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+    assert leftovers == [] and not any((tmp_path / f"o{i}").exists() for i in range(1, 6))
+
+
+def test_working_size_check():
+    with pytest.raises(predict.WorkingSizeError, match=r"^--height/--width 64x100: .* multiples of 64 for model "
+                                                       r"resnet_md \(try 64x128\)$"):
+        predict.check_working_size_option("resnet_md", 64, 100, "--height/--width")
+    # nearest multiples, halves rounded up: 100/64 → 2·64, 200/64 → 3·64, 20/8 = 2.5 → 3·8
+    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 64 for model resnet_md \(try 128x192\)"):
+        predict.check_working_size_option("resnet_md", 100, 200)
+    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 8 for model pwc_lite \(try 48x104\)"):
+        predict.check_working_size_option("pwc_lite", 44, 100)
+    # pwc_lite also needs 3 pyramid levels (at least 32x64): the suggestion is a size that works
+    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 8 for model pwc_lite \(try 32x64\)"):
+        predict.check_working_size_option("pwc_lite", 12, 20)
+    with pytest.raises(predict.WorkingSizeError, match=r"^--working-size 16x24: working size 16x24 .* too small "
+                                                       r"for pwc_lite"):
+        predict.check_working_size_option("pwc_lite", 16, 24)
+    predict.check_working_size_option("resnet_md", 128, 192)      # fine: no error
+
+
+def _help_lines(parser):
+    """(option strings, help) of every option of `parser` but -h."""
+    return [(a.option_strings or [a.dest], a.help) for a in parser._actions if a.dest != "help"]
+
+
+def test_help_teaches():
+    parser = predict.build_parser()
+    missing = [opts for opts, text in _help_lines(parser) if not text]
+    assert missing == []
+    text = parser.format_help()
+    assert "python -m bridge_jax.predict --checkpoint" in text            # the docstring's examples are the epilog
+    assert "flow_flo/<stem>.flo" in text and "mapping" in text
+    assert "shipped model name such as demo" in text and "--debug" in text

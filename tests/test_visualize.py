@@ -120,3 +120,28 @@ def test_prediction_panel():
     assert p.shape == (16, 3 * 32 + 2 * 4, 3)
     right_down = visualize.flow_to_color(np.ones((1, 1, 2)), max_flow=1.0)[0, 0]
     assert p[15, 36 + 31].tolist() == right_down.tolist()   # bottom-right of the flow tile (below the label)
+
+
+def _jet_rgb(index):
+    """OpenCV's jet colour at colormap index 0..255, RGB (computed here, independently of visualize)."""
+    return cv2.applyColorMap(np.array([[index]], np.uint8), cv2.COLORMAP_JET)[0, 0, ::-1].tolist()
+
+
+def test_error_colorbar_matches_error_to_color_scale():
+    bar = visualize.error_colorbar(96)
+    np.testing.assert_array_equal(bar, visualize.colorbar(0.0, 12.0, "jet", height=96, unit="px", label="error",
+                                                          log=True))
+    # the bar occupies rows 24..85 (10 px pad + 14 px label; 96 - 20 - 14 = 62 rows), columns 4..21
+    assert bar[24, 10].tolist() == _jet_rgb(255) == visualize.error_to_color(np.array([[12.0]]))[0, 0].tolist()
+    assert bar[85, 10].tolist() == _jet_rgb(0) == visualize.error_to_color(np.array([[0.0]]))[0, 0].tolist()
+    # ticks (black, columns 22..27) at the ends: 12 px at the top row, 0 px at the bottom row
+    assert bar[24, 24].tolist() == [0, 0, 0] and bar[85, 24].tolist() == [0, 0, 0]
+
+
+def test_attach_colorbar():
+    img = np.full((30, 10, 3), 7, np.uint8)
+    bar = np.full((50, 5, 3), 100, np.uint8)
+    out = visualize.attach_colorbar(img, bar, gap=2)
+    assert out.shape == (50, 17, 3)
+    assert (out[:30, :10] == 7).all() and (out[30:, :10] == 255).all()    # image top-aligned, white below
+    assert (out[:, 10:12] == 255).all() and (out[:, 12:] == 100).all()    # gap, then the bar

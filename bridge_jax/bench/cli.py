@@ -48,7 +48,7 @@ import tempfile
 
 import jax
 
-from bridge_jax import configs
+from bridge_jax import cli, configs
 from bridge_jax.bench import measure
 from bridge_jax.bench.device import device_peak
 from bridge_jax.bench.peer import PEER_DIR_ENV, PEER_PYTHON_ENV, run_peer
@@ -82,22 +82,23 @@ def apply_size_options(config, args) -> None:
         config.dtype = args.dtype
 
 
-def parse_args(argv=None):
-    p = argparse.ArgumentParser(prog="python -m bridge_jax.bench", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--what", default="train_step", choices=WHATS + ("all",))
+def build_parser() -> argparse.ArgumentParser:
+    p = cli.make_parser("bridge_jax.bench", __doc__)
+    p.add_argument("--what", default="train_step", choices=WHATS + ("all",),
+                   help="what to measure (all: each in its own subprocess)")
     p.add_argument("--config", default="default", help="config name (default, full2, demo, ...[:arg]) or .py path")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override, e.g. loss.two_warp=full2")
-    p.add_argument("--height", type=int, default=None)
-    p.add_argument("--width", type=int, default=None)
+    p.add_argument("--height", type=int, default=None, help="working height (default: the config's)")
+    p.add_argument("--width", type=int, default=None, help="working width (default: the config's)")
     p.add_argument("--cycles", type=int, default=None, help="cycles per step (per device with --devices)")
-    p.add_argument("--dtype", default=None, choices=("float32", "bfloat16"))
+    p.add_argument("--dtype", default=None, choices=("float32", "bfloat16"),
+                   help="compute dtype (default: the config's; params stay float32)")
     p.add_argument("--micro-batch", default=None,
                    help="train_step: 0 = plain step, k = maps-first micro-batches of k pair-forwards, -1 = the "
                         "trainer's auto; comma list (default: the config's micro_batch)")
     p.add_argument("--pairs", type=int, default=1, help="inference: pairs per call")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--warmup", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=3, help="timed calls per measurement")
+    p.add_argument("--warmup", type=int, default=1, help="untimed calls after compiling, before the timed ones")
     p.add_argument("--devices", type=int, default=None, help="train_step: shard over this many devices")
     p.add_argument("--num-cpu-devices", type=int, default=None, help="fake this many CPU devices (before JAX starts)")
     p.add_argument("--check-single-device", action="store_true",
@@ -110,13 +111,17 @@ def parse_args(argv=None):
                    help=f"--peer: Python with PyTorch for the harness (default: ${PEER_PYTHON_ENV})")
     p.add_argument("--peer-dir", default=os.environ.get(PEER_DIR_ENV),
                    help=f"--peer: folder holding harness.py (default: ${PEER_DIR_ENV})")
-    p.add_argument("--peer-runs", type=int, default=None)
-    p.add_argument("--peer-threads", type=int, default=2)
+    p.add_argument("--peer-runs", type=int, default=None, help="--peer: timed runs of upstream (default: --repeats)")
+    p.add_argument("--peer-threads", type=int, default=2, help="--peer: torch threads of the upstream run")
     p.add_argument("--json", default=None, metavar="OUT", help="append one JSON line per measurement here")
     p.add_argument("--in-process", action="store_true", help="--what all: measure in this process (no subprocesses)")
     p.add_argument("--pipeline-source", default="config", choices=("config", "kitti_sized"),
                    help="--what pipeline: the config's data, or KITTI-sized PNG files in a temporary folder")
-    return p.parse_args(argv)
+    return p
+
+
+def parse_args(argv=None):
+    return build_parser().parse_args(argv)
 
 
 def _micro_list(args, config) -> list[int]:

@@ -8,9 +8,11 @@ job). Each module has `get_config(arg=None)` returning an `ml_collections.Config
 from __future__ import annotations
 
 import ast
+import difflib
 import importlib
 import importlib.util
 import os
+import re
 from typing import Sequence
 
 import ml_collections
@@ -23,6 +25,14 @@ def names() -> list[str]:
     return sorted(f[:-3] for f in os.listdir(CONFIG_DIR) if f.endswith(".py") and not f.startswith("_"))
 
 
+def summary(name: str) -> str:
+    """The first sentence of a shipped config's docstring (read from the file, without importing it)."""
+    with open(os.path.join(CONFIG_DIR, f"{name}.py")) as f:
+        doc = ast.get_docstring(ast.parse(f.read())) or ""
+    first = " ".join(doc.split("\n\n")[0].split())
+    return re.split(r"\.\s+(?=[A-Z])", first)[0].rstrip(".")  # "et al. (CVPR" does not end it
+
+
 def load(spec: str) -> ml_collections.ConfigDict:
     """A config by name (`default`, `full2:local`, see `names()`) or by path (`dir/file.py[:arg]`).
 
@@ -31,14 +41,19 @@ def load(spec: str) -> ml_collections.ConfigDict:
     name, _, arg = spec.partition(":")
     if name.endswith(".py") or os.sep in name:
         if not os.path.isfile(name):
-            raise ValueError(f"--config {spec}: no such config file {name!r}")
+            close = difflib.get_close_matches(os.path.basename(name)[:-3], names(), n=1) if name.endswith(".py") else []
+            hint = f" (or the shipped config by name: --config={close[0]})" if close else ""
+            raise ValueError(f"--config {spec}: no such config file {name!r}{hint}")
         mod_spec = importlib.util.spec_from_file_location("bridge_jax_user_config", name)
         module = importlib.util.module_from_spec(mod_spec)
         mod_spec.loader.exec_module(module)
     elif name in names():
         module = importlib.import_module(f"bridge_jax.configs.{name}")
     else:
-        raise ValueError(f"--config {spec}: unknown config {name!r}; expected one of {names()} or a .py path")
+        close = difflib.get_close_matches(name, names(), n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise ValueError(f"--config {spec}: unknown config {name!r}{hint} (shipped: {', '.join(names())}; or a "
+                         f"path to a .py file)")
     try:
         return module.get_config(arg or None)
     except (ValueError, TypeError) as e:
@@ -70,6 +85,11 @@ def override(config: ml_collections.ConfigDict, items: Sequence[str]) -> ml_coll
         if not isinstance(node, ml_collections.ConfigDict) or last not in node:
             raise ValueError(f"{item!r}: config has no field {key!r}")
         value = text if isinstance(node[last], str) else _literal(text)
+        if isinstance(node[last], float) and isinstance(value, str):
+            try:  # "inf", "nan", "1e-4 " (ast cannot read the first two)
+                value = float(value)
+            except ValueError:
+                pass
         try:
             node[last] = value
         except (TypeError, ValueError) as e:

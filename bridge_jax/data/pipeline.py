@@ -5,6 +5,7 @@
       ─ map(load: decode the cycle, or skip a corrupt one and take the next valid one)
       ─ random_map(augment, same draw for the 4 frames) ─ map(resize to H × W)
       ─ to_iter_dataset ─ batch(global_batch / P, drop_remainder) ─ mp_prefetch(num_workers)
+      ─ map(record the batch's skipped cycles in this process's skip report)
     yields {"cycle": float32 (B_local, 4, H, W, 3) in [0, 1]}; the iterator's get_state()/set_state() resume on
     the exact next batch (the state is a small dict, saved by the trainer in its orbax checkpoint).
 
@@ -23,10 +24,19 @@ Augmentation (the paper's, each op independently with p = 0.5, one draw shared b
 Resize (after augmentation, on uint8 as upstream's PIL resize): cv2 INTER_AREA when shrinking (anti-aliased,
 close to PIL's bilinear), INTER_LINEAR when enlarging; then /255 → float32.
 
-Corrupt data: a cycle whose image is missing, truncated or undecodable, or whose frames differ in size, is
-replaced by the next valid cycle of the source (index + 1, + 2, …); each skip is logged with the file path and
-counted (`skip_counts()` in this process; workers log their own). More than `max_skip` consecutive failures
-raise one error naming the data folder.
+Bad data, found in two places:
+  * before training (`DataConfig.prescan`, sources "folder" and "kitti_raw"): `folders.check_cycles` reads every
+    image's header; left/right frames of different sizes in most stereo frames of a sequence raise one
+    ValueError naming both files (the trainer builds the dataset before it creates its workdir); cycles with an
+    unreadable file, a few odd left/right pairs, or spanning a change of frame size are left out of the source,
+    each with its cause (`prescan_report()`);
+  * while decoding: a cycle whose image is missing, truncated or undecodable, or whose frames differ in size,
+    is replaced by the next valid cycle of the source (index + 1, + 2, …). More than `max_skip` consecutive
+    failures raise one error naming the data folder and the causes.
+`skip_report()` counts each distinct skipped cycle once (not once per epoch), pre-scan exclusions and decode
+failures together, in the process that iterates the dataset: decode failures in grain worker processes travel
+with their batch (each element carries the source indices it skipped) and are recorded when the batch reaches
+the iterating process. Each distinct skip is logged once, with the file and the cause.
 """
 from __future__ import annotations
 
@@ -51,30 +61,96 @@ log = logging.getLogger(__name__)
 SOURCES = ("synthetic", "kitti_raw", "folder", "tfds")
 DEFAULT_SYNTHETIC_NUM = 100_000
 
-_SKIPS = {"count": 0, "paths": []}
-_SKIPS_LOCK = threading.Lock()
+
+class SkipLog:
+    """Distinct skipped cycles {cycle id: (file at fault, cause)}, first cause kept; thread-safe."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._cycles: dict[str, tuple[str, str]] = {}
+
+    def add(self, cycle_id: str, path: str, cause: str) -> bool:
+        """Records a skipped cycle; True when it was not recorded before."""
+        with self._lock:
+            if cycle_id in self._cycles:
+                return False
+            self._cycles[cycle_id] = (path, cause)
+            return True
+
+    def __contains__(self, cycle_id: str) -> bool:
+        with self._lock:
+            return cycle_id in self._cycles
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._cycles)
+
+    def items(self) -> list:
+        with self._lock:
+            return list(self._cycles.items())
+
+    def clear(self) -> None:
+        with self._lock:
+            self._cycles.clear()
+
+
+_PRESCAN = SkipLog()  # cycles left out by the pre-scan of sources built for a dataset in this process
+_RUNTIME = SkipLog()  # cycles whose decoding failed (here, or in a worker whose batch reached this process)
+
+
+def _report(*logs: SkipLog) -> dict:
+    cycles, causes = set(), {}
+    for sl in logs:
+        for cid, (path, cause) in sl.items():
+            cycles.add(cid)
+            causes.setdefault(path, cause)
+    return {"cycles": len(cycles), "files": sorted(causes), "causes": {p: causes[p] for p in sorted(causes)}}
+
+
+def skip_report() -> dict:
+    """Distinct cycles skipped since the last `reset_skip_counts()`, each counted once however often it is met:
+
+        {"cycles": number of distinct cycle ids skipped, "files": sorted distinct files at fault,
+         "causes": {file: cause}}
+
+    It covers the pre-scan exclusions of every dataset built in this process (`prescan_report()`) and the
+    decode failures of the batches this process has consumed (from worker processes too, see the module
+    docstring); a cycle's files are named once, with the first cause found.
+    """
+    return _report(_PRESCAN, _RUNTIME)
+
+
+def prescan_report() -> dict:
+    """The part of `skip_report()` found before training: cycles left out by `folders.check_cycles` when
+    `make_train_dataset` built its source (same keys as `skip_report()`)."""
+    return _report(_PRESCAN)
 
 
 def skip_counts() -> dict:
-    """{"count": corrupt cycles skipped in this process, "paths": their file paths (first 1000)}."""
-    with _SKIPS_LOCK:
-        return {"count": _SKIPS["count"], "paths": list(_SKIPS["paths"])}
+    """{"count": distinct skipped cycles, "paths": their files} (the older short form of `skip_report()`)."""
+    rep = skip_report()
+    return {"count": rep["cycles"], "paths": rep["files"]}
 
 
 def reset_skip_counts() -> None:
-    with _SKIPS_LOCK:
-        _SKIPS["count"] = 0
-        _SKIPS["paths"].clear()
+    """Forgets every recorded skip (pre-scan and decode failures)."""
+    _PRESCAN.clear()
+    _RUNTIME.clear()
 
 
-def _record_skip(path: str, reason: str, cycle_id: str) -> None:
-    with _SKIPS_LOCK:
-        _SKIPS["count"] += 1
-        if len(_SKIPS["paths"]) < 1000:
-            _SKIPS["paths"].append(path)
-        n = _SKIPS["count"]
-    log.warning("skipping corrupt cycle %s: %s: %s (%d skipped so far in process %d)", cycle_id, path, reason, n,
-                os.getpid())
+def _cycle_id(source, index: int) -> str:
+    """A source record's cycle id (file sources), else "#<index>" (the same in every process)."""
+    records = getattr(source, "records", None)
+    return str(records[index]["id"]) if records is not None else f"#{index}"
+
+
+def _record_skip(source, index: int, path: str, reason: str) -> None:
+    cycle_id = _cycle_id(source, index)
+    if _RUNTIME.add(cycle_id, path, reason):
+        log.warning("skipping unreadable cycle %s: %s: %s (%d distinct cycles skipped so far in process %d)",
+                    cycle_id, path, reason, len(_RUNTIME), os.getpid())
+    else:  # met again (a later epoch): already reported
+        log.debug("skipping unreadable cycle %s again: %s", cycle_id, path)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -82,10 +158,15 @@ def _record_skip(path: str, reason: str, cycle_id: str) -> None:
 # ----------------------------------------------------------------------------------------------------------
 
 class FileCycleSource:
-    """Cycles read from image files; `records` as returned by kitti.raw_cycles / folders.folder_cycles."""
+    """Cycles read from image files; `records` as returned by kitti.raw_cycles / folders.folder_cycles.
 
-    def __init__(self, records: list, root: str):
+    `excluded`: the cycles `folders.check_cycles` left out ([{"id", "path", "cause"}]), recorded in the skip
+    report when a dataset is built on this source.
+    """
+
+    def __init__(self, records: list, root: str, excluded: Optional[list] = None):
         self.records, self.root = list(records), root
+        self.excluded = list(excluded or ())
 
     def __len__(self) -> int:
         return len(self.records)
@@ -93,9 +174,8 @@ class FileCycleSource:
     def load(self, index: int) -> dict:
         rec = self.records[index]
         frames = [kitti.read_image(p) for p in rec["paths"]]
-        shapes = {f.shape for f in frames}
-        if len(shapes) != 1:
-            raise kitti.CorruptImageError(rec["paths"][0], f"the 4 frames of the cycle differ in size {shapes}")
+        if len({f.shape for f in frames}) != 1:
+            raise kitti.CorruptImageError(*folders.frames_differ_message(rec["paths"], [f.shape for f in frames]))
         return {"cycle": np.stack(frames), "id": rec["id"]}
 
     def __getitem__(self, index: int) -> dict:
@@ -153,6 +233,11 @@ class DataConfig:
     num_workers: grain worker processes (0 = decode in the training process).
     prefetch, read_threads, worker_buffer_size: grain read options.
     max_skip: consecutive unreadable cycles tolerated before the data folder is reported as broken.
+    prescan: read every image's header when the dataset is built (folder | kitti_raw): sizes and readability
+      are checked before training (see the module docstring); False skips it (very large folders on slow
+      storage: bad cycles are then only found while decoding).
+    val_dir: held-out frames of your own for training's validation, in the layouts of `folders.LAYOUT_HELP`
+      (`bridge_jax.eval.photometric`: photometric error without ground truth); "" = the synthetic validation.
     synthetic_num: cycles of the synthetic source per epoch (it is endless; this fixes the shuffle period).
     num_epochs: passes over the source (None = forever, the trainer's choice).
     """
@@ -168,27 +253,37 @@ class DataConfig:
     max_skip: int = 100
     synthetic_num: int = DEFAULT_SYNTHETIC_NUM
     num_epochs: Optional[int] = None
+    prescan: bool = True
+    val_dir: str = ""
 
     def __post_init__(self):
         if self.source not in SOURCES:
             raise ValueError(f"data.source must be one of {SOURCES}, got {self.source!r}")
         if self.source != "synthetic" and not self.data_dir:
             raise ValueError(f"data.source={self.source!r} needs data.data_dir")
+        if not isinstance(self.val_dir, str):
+            raise ValueError(f"data.val_dir must be a folder or '' (synthetic validation), got {self.val_dir!r}")
 
 
 def make_source(data: DataConfig, *, height: int = 256, width: int = 512, seed: int = 0):
     """The cycle source named by `data.source` (len + load(i) -> {"cycle": uint8 (4, H, W, 3), "id"})."""
     if data.source == "synthetic":
         return SyntheticSource(int(data.synthetic_num), int(seed), int(height), int(width))
-    if data.source == "kitti_raw":
-        return FileCycleSource(kitti.raw_cycles(data.data_dir, data.split or "all"), data.data_dir)
-    if data.source == "folder":
-        return FileCycleSource(folders.folder_cycles(data.data_dir), data.data_dir)
+    if data.source in ("kitti_raw", "folder"):
+        if data.source == "kitti_raw":
+            records = kitti.raw_cycles(data.data_dir, data.split or "all")
+        else:
+            records = folders.folder_cycles(data.data_dir)
+        excluded: list = []
+        if data.prescan:  # raises ValueError for systematic size mismatches: before any workdir exists
+            records, excluded = folders.check_cycles(records, where=data.data_dir)
+        return FileCycleSource(records, data.data_dir, excluded)
     return TfdsCycleSource(data.data_dir, data.split or "all")
 
 
 class LoadCycle:
-    """index → {"cycle": uint8 (4, H, W, 3), "id"}: loads cycle `index`, or the next valid one after it."""
+    """index → {"cycle": uint8 (4, H, W, 3), "id", "skipped": int64 (2,)}: loads cycle `index`, or the next
+    valid one after it; "skipped" = (first, count): source indices first … first + count − 1 (mod len) failed."""
 
     def __init__(self, source, max_skip: int = 100):
         self.source, self.max_skip = source, max_skip
@@ -196,17 +291,47 @@ class LoadCycle:
     def __call__(self, index) -> dict:
         n = len(self.source)
         first = int(index) % n
-        for attempt in range(min(self.max_skip, n)):
+        limit = min(self.max_skip, n)
+        causes: dict[str, str] = {}
+        for attempt in range(limit):
             j = (first + attempt) % n
             try:
                 rec = self.source.load(j)
             except kitti.CorruptImageError as e:
-                _record_skip(e.path, e.reason, str(j))
+                _record_skip(self.source, j, e.path, e.reason)
+                causes.setdefault(e.path, e.reason)
                 continue
-            return {"cycle": rec["cycle"], "id": rec["id"]}
-        raise RuntimeError(f"{min(self.max_skip, n)} consecutive cycles starting at #{first} of "
-                           f"{getattr(self.source, 'root', '?')!r} are unreadable (corrupt, truncated or missing "
-                           f"images); check the data folder")
+            return {"cycle": rec["cycle"], "id": rec["id"], "skipped": np.array([first, attempt], np.int64)}
+        shown = "; ".join(f"{p}: {r}" for p, r in list(causes.items())[:3])
+        more = f" and {len(causes) - 3} more files" if len(causes) > 3 else ""
+        raise RuntimeError(f"{limit} consecutive cycles starting at #{first} of {getattr(self.source, 'root', '?')!r} "
+                           f"are unreadable ({shown}{more}); check the data folder")
+
+
+class _CollectSkips(grain.transforms.Map):
+    """Runs in the iterating process (after the worker processes): records the skips a batch carries, so that
+    `skip_report()` there also knows the decode failures of the workers; yields {"cycle"} only."""
+
+    def __init__(self, source):
+        self.source = source
+
+    def map(self, batch: dict) -> dict:
+        n = len(self.source)
+        for first, count in np.asarray(batch["skipped"]).reshape(-1, 2):
+            for a in range(int(count)):
+                j = (int(first) + a) % n
+                if _cycle_id(self.source, j) in _RUNTIME:
+                    continue
+                # The worker knew the file and the cause; a second read here names them (rare: once per
+                # distinct bad cycle).
+                try:
+                    self.source.load(j)
+                except kitti.CorruptImageError as e:
+                    _record_skip(self.source, j, e.path, e.reason)
+                else:
+                    _record_skip(self.source, j, f"{getattr(self.source, 'root', '?')}#{j}",
+                                 "unreadable in a worker process (readable when read again)")
+        return {"cycle": batch["cycle"]}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -290,7 +415,7 @@ class _Augment(grain.transforms.RandomMap):
     def random_map(self, element: dict, rng: np.random.Generator) -> dict:
         if not self.enabled:
             return element
-        return {"cycle": apply_augment_uint8(element["cycle"], draw_augment(rng)), "id": element["id"]}
+        return {**element, "cycle": apply_augment_uint8(element["cycle"], draw_augment(rng))}
 
 
 class _Resize(grain.transforms.Map):
@@ -299,7 +424,7 @@ class _Resize(grain.transforms.Map):
 
     def map(self, element: dict) -> dict:
         small = resize_frames(element["cycle"], self.height, self.width)
-        return {"cycle": small.astype(np.float32) * np.float32(1.0 / 255.0)}
+        return {"cycle": small.astype(np.float32) * np.float32(1.0 / 255.0), "skipped": element["skipped"]}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -320,7 +445,11 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
       source: optional ready source object (len + load) instead of building one from `data`.
     Returns:
       grain IterDataset; iter(ds) yields {"cycle": float32 (global_batch // P, 4, height, width, 3)} and has
-      get_state() / set_state().
+      get_state() / set_state(). The source's pre-scan exclusions are in `prescan_report()` from here on, and
+      `skip_report()` grows with the decode failures of the batches consumed.
+    Raises:
+      ValueError for bad arguments and bad data found before training (missing folder, no cycles, left and
+      right frames of different sizes; see `folders.check_cycles`).
     """
     if process_index is None or process_count is None:
         process_index = jax.process_index() if process_index is None else process_index
@@ -332,6 +461,8 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     local_batch = global_batch // process_count
     src = source if source is not None else make_source(data, height=height, width=width, seed=seed)
+    for e in getattr(src, "excluded", ()):
+        _PRESCAN.add(e["id"], e["path"], e["cause"])
     n = len(src)
     usable = n - n % process_count
     if usable // process_count < 1:
@@ -356,7 +487,7 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
             flags.FLAGS.mark_as_parsed()
         ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=workers,
                                                          per_worker_buffer_size=int(data.worker_buffer_size)))
-    return ds
+    return ds.map(_CollectSkips(src))
 
 
 def shard_batch(batch: dict, mesh, axis_names=None):

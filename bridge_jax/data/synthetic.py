@@ -36,7 +36,6 @@ KITTI 2015 training layout (see `write_kitti_layout`).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import json
@@ -648,19 +647,34 @@ def write_kitti_layout(out_dir: str, num: int, seed: int = 0, height: int = 256,
     return os.path.abspath(out_dir)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bridge_jax.data.synthetic",
-                                     description="Write procedural stereo-video samples with exact GT in the "
-                                                 "KITTI 2015 training layout.")
+def build_parser():
+    from bridge_jax import cli
+    parser = cli.make_parser("bridge_jax.data.synthetic", CLI_DOC)
     parser.add_argument("--out", required=True, help="output folder (must be new or empty unless --overwrite)")
-    parser.add_argument("--num", type=int, default=20, help="number of samples (default 20)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--height", type=int, default=256)
-    parser.add_argument("--width", type=int, default=512)
-    parser.add_argument("--focal", type=float, default=None, help="pixels (default 721.5377*width/1242)")
-    parser.add_argument("--baseline", type=float, default=DEFAULT_BASELINE, help="metres (default 0.54)")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
+    parser.add_argument("--num", type=int, default=20, help="number of samples")
+    parser.add_argument("--seed", type=int, default=0, help="base seed: sample i is rendered from seed + i")
+    parser.add_argument("--height", type=int, default=256, help="image height in pixels")
+    parser.add_argument("--width", type=int, default=512, help="image width in pixels")
+    parser.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 721.5377*width/1242)")
+    parser.add_argument("--baseline", type=float, default=DEFAULT_BASELINE, help="stereo baseline in metres")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
+    return parser
+
+
+CLI_DOC = """Write procedural stereo-video samples with exact ground truth in the KITTI 2015 training layout.
+
+    python -m bridge_jax.data.synthetic --out work/synthetic_val --num 16 --seed 1000003 --height 64 --width 128
+    python -m bridge_jax.evaluate --checkpoint demo --dataset synthetic --data-dir work/synthetic_val --out work/ev
+
+Output: image_2/ and image_3/ (NNNNNN_10.png, NNNNNN_11.png: left/right at t and t+1), disp_occ_0/, disp_noc_0/,
+disp_occ_1/, disp_noc_1/ (KITTI 16-bit disparity PNGs), flow_occ/, flow_noc/ (KITTI 16-bit flow PNGs),
+calib_cam_to_cam/NNNNNN.txt and synthetic.json (generator settings and per-sample seeds). The same seed gives
+the same samples.
+"""
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         if args.height < 8 or args.width < 8:
             raise ValueError(f"--height/--width must be >= 8, got {args.height}x{args.width}")

@@ -61,9 +61,18 @@ def markdown_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+ERROR_BAR_MIN_HEIGHT = 96
+"""The error colour bar is as tall as the panel, but at least this (shorter bars have no room for ticks)."""
+
+
 def frame_panel(frame: Frame, pred: dict[str, np.ndarray]) -> np.ndarray:
     """Side-by-side picture of one frame: input, predicted flow / disparity, GT and error maps, and the flow's
-    occlusion estimate when the prediction has one (RGB uint8)."""
+    occlusion estimate when the prediction has one (RGB uint8).
+
+    When there are error maps (the frame has GT), the error colour bar (`visualize.error_colorbar`, end-point
+    error in px on the log scale of `visualize.error_to_color`) is attached to the right of the whole grid, so
+    that the error of any pixel can be read from its colour.
+    """
     tiles, labels = [frame.images["left_t"]], ["left t"]
     gt = frame.gt
     if "flow" in pred:
@@ -86,7 +95,11 @@ def frame_panel(frame: Frame, pred: dict[str, np.ndarray]) -> np.ndarray:
     if "occlusion" in pred:
         tiles.append(visualize.to_uint8(pred["occlusion"]))
         labels.append("occluded (flow)")
-    return visualize.panel(tiles, labels, ncols=4 if len(tiles) > 4 else len(tiles))
+    grid = visualize.panel(tiles, labels, ncols=4 if len(tiles) > 4 else len(tiles))
+    if not any(label.endswith(" error") for label in labels):
+        return grid
+    bar = visualize.error_colorbar(max(grid.shape[0], ERROR_BAR_MIN_HEIGHT), label="error")
+    return visualize.attach_colorbar(grid, bar)
 
 
 def _json_safe(x):

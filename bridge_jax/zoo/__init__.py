@@ -1,0 +1,248 @@
+"""Models by name: the weights shipped inside the package and a registry of other known checkpoints.
+
+    python -m bridge_jax.predict --checkpoint demo frame0.png frame1.png --out out/    # from any directory
+    from bridge_jax.inference import load_predictor
+    pred = load_predictor("demo")                    # the shipped demo model, at the size it was trained at
+    python -m bridge_jax.zoo                         # lists the names
+    python -m bridge_jax.zoo build demo --from work/demo/train   # regenerate the shipped weights (maintainers)
+
+Wherever a command takes `--checkpoint` (predict, evaluate, export) or a config takes `init_from`, a registry
+name works as well as a path. Kinds of entry:
+
+* **shipped** (`demo`): float32 params in `bridge_jax/zoo/<name>.npz` (one array per parameter, keys are the
+  parameter paths joined by "/") and `<name>.json` (model description, working size, how it was trained, its
+  validation numbers and the npz's SHA-256). Nothing is downloaded.
+* **local** (`upstream_ver_a/b/c`): the upstream authors' released PyTorch weights, converted once with
+  `python -m bridge_jax.convert` to a params folder under `$BRIDGE_JAX_HOME` (default `~/.cache/bridge_jax`);
+  the entry says where to download the `.pth` file and the exact command. Until converted, using the name is one
+  error naming that command.
+
+`register(name, path)` adds a name for a checkpoint folder of your own (this process only).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+HOME_ENV = "BRIDGE_JAX_HOME"
+ZOO_DIR = Path(__file__).resolve().parent
+UPSTREAM_DOWNLOAD = "https://drive.google.com/drive/folders/1l6HLF2Dq1ObsTjdJaAPKK6NOAZDOI0Rs"
+
+
+def home() -> Path:
+    """Where converted / downloaded weights live: `$BRIDGE_JAX_HOME`, default `~/.cache/bridge_jax`."""
+    return Path(os.environ.get(HOME_ENV) or "~/.cache/bridge_jax").expanduser()
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """One named model. `kind`: "shipped" (npz + json in this folder) or "local" (a checkpoint folder,
+    `path`, that `how` creates from the file at `download`)."""
+
+    name: str
+    kind: str
+    description: str
+    path: Optional[str] = None
+    download: Optional[str] = None
+    how: Optional[str] = None
+
+    def local_path(self) -> Path:
+        return Path(self.path).expanduser() if os.path.isabs(os.path.expanduser(self.path)) else home() / self.path
+
+
+_ENTRIES: dict[str, Entry] = {
+    "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` (the `demo` config: 64x128, "
+                  "2,500 steps on the built-in synthetic stereo video); a starting point, not a KITTI model"),
+    **{f"upstream_ver_{v}": Entry(
+        f"upstream_ver_{v}", "local",
+        f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
+        f"variant full-{i}), converted to bridge_jax",
+        path=f"upstream_ver_{v}", download=UPSTREAM_DOWNLOAD,
+        how=f"python -m bridge_jax.convert --from monodepth_ver_{v}.pth --out {{path}}")
+       for i, v in enumerate("abc", start=1)},
+}
+
+
+def names() -> list[str]:
+    return sorted(_ENTRIES)
+
+
+def entry(name: str) -> Entry:
+    """The registry entry `name`; ValueError naming the close matches when unknown."""
+    if name not in _ENTRIES:
+        close = difflib.get_close_matches(name, names(), n=3)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise ValueError(f"{name!r} is neither an existing path nor a model name{hint}; model names: "
+                         f"{', '.join(names())}")
+    return _ENTRIES[name]
+
+
+def register(name: str, path: str | os.PathLike, description: str = "") -> None:
+    """Names a checkpoint folder of your own (params dir, training workdir or step dir) for this process."""
+    _ENTRIES[name] = Entry(name, "local", description or f"registered: {path}", path=os.path.abspath(path))
+
+
+def is_name(spec: Any) -> bool:
+    """True when `spec` should be looked up in the registry: a plain name (no path separator, no ".") that is
+    not an existing file or folder in the current directory."""
+    s = os.fspath(spec) if isinstance(spec, (str, os.PathLike)) else None
+    return bool(s) and os.sep not in s and "/" not in s and not s.startswith(".") and not os.path.exists(s)
+
+
+def _shipped_files(name: str) -> tuple[Path, Path]:
+    return ZOO_DIR / f"{name}.npz", ZOO_DIR / f"{name}.json"
+
+
+def info(name: str) -> dict:
+    """The shipped model's description (`<name>.json`): {"model", "height", "width", "config", "steps",
+    "validation", "sha256", ...}; for a local entry {"path", "download", "how"}."""
+    e = entry(name)
+    if e.kind == "shipped":
+        return json.loads(_shipped_files(name)[1].read_text())
+    return {"path": str(e.local_path()), "download": e.download, "how": (e.how or "").format(path=e.local_path())}
+
+
+def local_checkpoint(name: str) -> Optional[Path]:
+    """The checkpoint folder of a local entry (ValueError with the conversion command when it is missing);
+    None for a shipped entry."""
+    e = entry(name)
+    if e.kind == "shipped":
+        return None
+    p = e.local_path()
+    if not p.exists():
+        how = f"; create it with: {e.how.format(path=p)}" if e.how else ""
+        where = f" (download from {e.download})" if e.download else ""
+        raise ValueError(f"model {name!r} is not on this machine: {p} does not exist{how}{where}")
+    return p
+
+
+def _unflatten(flat: dict[str, np.ndarray]) -> dict:
+    tree: dict = {}
+    for key, value in flat.items():
+        node = tree
+        *parents, leaf = key.split("/")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for k, v in tree.items():
+        if "/" in str(k):
+            raise ValueError(f"parameter key {k!r} contains '/'")
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "/"))
+        else:
+            out[key] = np.asarray(v, np.float32)
+    return out
+
+
+def load_shipped(name: str) -> tuple[dict, dict]:
+    """(model config, params as nested dict of float32 numpy arrays) of a shipped model, checked against its
+    recorded SHA-256 and against the model's parameter shapes."""
+    from bridge_jax import models  # heavy import (flax) only when weights are loaded
+
+    npz, _ = _shipped_files(name)
+    meta = info(name)
+    data = npz.read_bytes()
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != meta.get("sha256"):
+        raise ValueError(f"{npz}: SHA-256 {digest[:12]}… differs from {name}.json's {str(meta.get('sha256'))[:12]}… "
+                         "(a damaged install: reinstall bridge_jax)")
+    with np.load(npz, allow_pickle=False) as z:
+        params = _unflatten({k: z[k] for k in z.files})
+    cfg = models.model_config(meta["model"])
+    _, abstract = models.abstract_init(cfg)
+    import jax
+    want = jax.tree.map(lambda a: tuple(a.shape), abstract)
+    got = jax.tree.map(lambda a: tuple(a.shape), params)
+    if want != got:
+        raise ValueError(f"{npz}: params do not match model {cfg['name']} (a damaged install: reinstall bridge_jax)")
+    return cfg, params
+
+
+def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
+    """`checkpointing.load_params` that also takes a registry name: (model config, params)."""
+    from bridge_jax import checkpointing
+
+    if is_name(spec):
+        e = entry(os.fspath(spec))
+        if e.kind == "shipped":
+            import jax.numpy as jnp
+            cfg, params = load_shipped(e.name)
+            return cfg, _map(params, lambda a: jnp.asarray(a, jnp.float32))
+        spec = local_checkpoint(e.name)
+    return checkpointing.load_params(spec)
+
+
+def _map(tree, fn):
+    return {k: _map(v, fn) if isinstance(v, dict) else fn(v) for k, v in tree.items()}
+
+
+def trained_size(spec: str | os.PathLike) -> Optional[tuple[int, int]]:
+    """(height, width) a shipped model was trained at; None for anything else (paths are handled by
+    `inference.trained_working_size`)."""
+    if is_name(spec) and os.fspath(spec) in _ENTRIES and _ENTRIES[os.fspath(spec)].kind == "shipped":
+        meta = info(os.fspath(spec))
+        return int(meta["height"]), int(meta["width"])
+    return None
+
+
+def resolve_path(spec: str | os.PathLike) -> str:
+    """A registry name of a local entry → its folder; a path → itself; a shipped name → ValueError (it has no
+    folder: use `load_params`)."""
+    if is_name(spec):
+        p = local_checkpoint(os.fspath(spec))
+        if p is None:
+            raise ValueError(f"model {spec!r} is shipped inside the package and has no checkpoint folder")
+        return str(p)
+    return os.fspath(spec)
+
+
+def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None) -> Path:
+    """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
+    config changes, retrain with `make demo` and run `python -m bridge_jax.zoo build demo --from
+    work/demo/train`). The json records the run's config so a test notices when the config moved on."""
+    import io
+
+    from bridge_jax import checkpointing, files
+
+    workdir = Path(workdir).absolute()
+    cfg, params = checkpointing.load_params(workdir)
+    checkpointing.check_finite_params(params, str(workdir))
+    run_cfg = json.loads((workdir / checkpointing.CONFIG_JSON).read_text())
+    step = Path(checkpointing.find_train_step_dir(workdir)).name
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **_flatten(_map(params, np.asarray)))
+    data = buf.getvalue()
+    meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
+            "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
+            "validation": validation if validation is not None else _last_validation(workdir)}
+    npz, js = _shipped_files(name)
+    files.write_bytes(npz, data)
+    files.write_json(js, meta)
+    return npz
+
+
+def _last_validation(workdir: Path) -> dict:
+    last: dict = {}
+    path = workdir / "metrics.jsonl"
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if rec.get("kind") == "val":
+                last = {k: v for k, v in rec.items() if k not in ("kind", "time")}
+    return last
