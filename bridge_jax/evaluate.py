@@ -40,13 +40,12 @@ from typing import Any, Optional
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files
+from bridge_jax import cli, files, inference
 from bridge_jax.eval.baselines import opencv_method, zero_method
 from bridge_jax.eval.datasets import DATASETS, EvaluationError, Frame, list_frames, load_frame
 from bridge_jax.eval.methods import ModelMethod
 from bridge_jax.eval.report import frame_panel, markdown_table, write_outputs
 from bridge_jax.eval.scoring import Scores
-from bridge_jax.predict import load_predictor
 
 
 @dataclasses.dataclass
@@ -211,7 +210,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.out is not None:
             files.check_output_dir(args.out, args.overwrite)
         height, width = args.working_size or (None, None)
-        predictor = load_predictor(args.checkpoint, height, width) if args.checkpoint else None
+        predictor = (inference.load_predictor(args.checkpoint, height=height, width=width, size_option="--working-size")
+                     if args.checkpoint else None)
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
                            garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
                            out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,

@@ -29,7 +29,6 @@ import jax
 import jax.numpy as jnp
 
 from bridge_jax import cli, files, inference
-from bridge_jax.predict import load_predictor
 
 
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
@@ -89,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.batch < 1:   # checked before the (slow) checkpoint load
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
-        predictor = load_predictor(args.checkpoint, args.height, args.width, option="--height/--width",
-                                   dtype=args.dtype)
+        predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
+                                             dtype=args.dtype, size_option="--height/--width")
         exp = export_network(predictor, batch=args.batch, task=args.task)
         out = serialize_to_file(exp, args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package

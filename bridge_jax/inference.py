@@ -326,20 +326,22 @@ def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
 
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
-                   dtype: Any = None) -> Predictor:
+                   dtype: Any = None, size_option: str = "working size") -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.load_params` accepts (params-only dir, training workdir, step dir).
 
     Working size: `height`/`width` if given, else the size a training workdir or shipped model was trained at
     (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
-    Raises ValueError naming the checkpoint (missing, unreadable) or the working size.
+    Raises ValueError naming the checkpoint (missing, unreadable), or `size_option` (how the caller's user
+    gave the size, e.g. "--working-size") with the model's input multiple and a size that fits.
     """
     if height is None or width is None:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
         height = trained[0] if height is None else height
         width = trained[1] if width is None else width
     cfg, params = zoo.load_params(path)
+    models.check_working_size(cfg["name"], height, width, what=size_option)
     separate = bool(cfg.pop("separate_networks", False))
     graphdef, _ = models.abstract_init(cfg)
     if dtype is None:

@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files, flowio, inference, metrics, models, visualize
+from bridge_jax import cli, files, flowio, inference, metrics, visualize
 from bridge_jax.data import kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -73,68 +73,6 @@ RAW_FORMATS = ("png", "npy", "flo", "pfm")
 
 class PredictError(ValueError):
     """Bad user input for predict (names the file or option)."""
-
-
-class WorkingSizeError(ValueError):
-    """The requested working size does not suit the checkpoint's model (names the option and the multiple)."""
-
-
-def check_working_size_option(model_name: str, height: int, width: int, option: str = "--working-size") -> None:
-    """Raises WorkingSizeError naming `option` unless ``height x width`` suits `model_name`: positive multiples
-    of `models.INPUT_MULTIPLE` (the message suggests the nearest ones), and for pwc_lite large enough for its
-    pyramid."""
-    multiple = models.INPUT_MULTIPLE.get(model_name)
-    if multiple is None:
-        return
-    if height <= 0 or width <= 0 or height % multiple or width % multiple:
-        near = _suggest_size(model_name, multiple, height, width)
-        raise WorkingSizeError(f"{option} {height}x{width}: height and width must be multiples of {multiple} for "
-                               f"model {model_name}" + (f" (try {near[0]}x{near[1]})" if near else ""))
-    try:
-        models.check_working_size(model_name, int(height), int(width), what=f"{option} {height}x{width}")
-    except ValueError as e:
-        raise WorkingSizeError(str(e)) from None
-
-
-def _suggest_size(model_name: str, multiple: int, height: int, width: int) -> Optional[tuple[int, int]]:
-    """The valid working size closest to ``height x width`` (sum of the differences): the nearest multiples
-    (halves round up), grown in steps of `multiple` where the model needs more (pwc_lite's pyramid)."""
-    def nearest(v):
-        return max(multiple, (max(v, 0) + multiple // 2) // multiple * multiple)
-
-    def ok(h, w):
-        try:
-            models.check_working_size(model_name, h, w)
-            return True
-        except ValueError:
-            return False
-
-    steps = [k * multiple for k in range(16)]
-    fits = [(abs(h - height) + abs(w - width), h, w) for h in (nearest(height) + d for d in steps)
-            for w in (nearest(width) + d for d in steps) if ok(h, w)]
-    return min(fits)[1:] if fits else None
-
-
-def load_predictor(checkpoint: str, height: Optional[int] = None, width: Optional[int] = None, *,
-                   option: str = "--working-size", dtype=None) -> inference.Predictor:
-    """`inference.load_predictor`, but a working size that does not suit the model is reported against the
-    command-line `option` (`WorkingSizeError`: the given size, the model's input multiple, a size to try)
-    rather than as a generic error. ``None`` sizes: the checkpoint's trained size, else 256 x 512."""
-    try:
-        return inference.load_predictor(checkpoint, height=height, width=width, dtype=dtype)
-    except ValueError as error:
-        if height is None and width is None:
-            raise
-        # Was the size the problem? Only the checkpoint knows its model (hence its input multiple): load it at
-        # its own size (this costs a second load, but only on this error path) and check the size against it.
-        try:
-            fallback = inference.load_predictor(checkpoint, dtype=dtype)
-        except ValueError:
-            raise error from None   # the checkpoint (or dtype) itself is at fault: its own message names it
-        name = (fallback.model_cfg or {}).get("name", "")
-        check_working_size_option(name, fallback.height if height is None else height,
-                                  fallback.width if width is None else width, option)
-        raise
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -661,13 +599,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
-            predictor = load_predictor(args.checkpoint, height, width)
+            predictor = inference.load_predictor(args.checkpoint, height=height, width=width,
+                                                  size_option="--working-size")
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
-            predictor = load_predictor(args.checkpoint, height, width)
+            predictor = inference.load_predictor(args.checkpoint, height=height, width=width,
+                                                  size_option="--working-size")
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,

@@ -434,3 +434,21 @@ def test_im2col_conv_path_matches_numpy(rng, monkeypatch):
     k = rng.standard_normal((3, 3, 6, 4))
     assert layers._use_im2col(x.shape, k.shape, 1, 1)
     np.testing.assert_allclose(np.asarray(layers.conv2d(f32(x), f32(k))), np_conv(x, k), atol=1e-4)
+
+
+def test_working_size_check_names_the_option_and_a_size_that_fits():
+    with pytest.raises(ValueError, match=r"^--height/--width 64x100: .* multiples of 64 for model "
+                                         r"resnet_md \(try 64x128\)$"):
+        models.check_working_size("resnet_md", 64, 100, "--height/--width")
+    # nearest multiples, halves rounded up: 100/64 → 2·64, 200/64 → 3·64, 20/8 = 2.5 → 3·8
+    with pytest.raises(ValueError, match=r"multiples of 64 for model resnet_md \(try 128x192\)"):
+        models.check_working_size("resnet_md", 100, 200, "--working-size")
+    with pytest.raises(ValueError, match=r"multiples of 8 for model pwc_lite \(try 48x104\)"):
+        models.check_working_size("pwc_lite", 44, 100, "--working-size")
+    # pwc_lite also needs 3 pyramid levels (at least 32x64): the suggestion is a size that works
+    with pytest.raises(ValueError, match=r"multiples of 8 for model pwc_lite \(try 32x64\)"):
+        models.check_working_size("pwc_lite", 12, 20, "--working-size")
+    with pytest.raises(ValueError, match=r"^--working-size 16x24: working size 16x24 .* too small "
+                                         r"for pwc_lite"):
+        models.check_working_size("pwc_lite", 16, 24, "--working-size")
+    models.check_working_size("resnet_md", 128, 192, "--working-size")      # fine: no error

@@ -16,7 +16,6 @@ H, W = 100, 200          # input resolution, deliberately not the working size (
 
 
 
-
 @pytest.fixture(scope="module")
 def predictor(tiny_checkpoint):
     return inference.load_predictor(tiny_checkpoint, height=128, width=256)
@@ -278,24 +277,6 @@ def test_bad_inputs(tiny_checkpoint, frames, tmp_path, capsys):
     # nothing half-written next to the requested outputs
     leftovers = [f for f in os.listdir(tmp_path) if f.startswith(".")]
     assert leftovers == [] and not any((tmp_path / f"o{i}").exists() for i in range(1, 6))
-
-
-def test_working_size_check():
-    with pytest.raises(predict.WorkingSizeError, match=r"^--height/--width 64x100: .* multiples of 64 for model "
-                                                       r"resnet_md \(try 64x128\)$"):
-        predict.check_working_size_option("resnet_md", 64, 100, "--height/--width")
-    # nearest multiples, halves rounded up: 100/64 → 2·64, 200/64 → 3·64, 20/8 = 2.5 → 3·8
-    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 64 for model resnet_md \(try 128x192\)"):
-        predict.check_working_size_option("resnet_md", 100, 200)
-    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 8 for model pwc_lite \(try 48x104\)"):
-        predict.check_working_size_option("pwc_lite", 44, 100)
-    # pwc_lite also needs 3 pyramid levels (at least 32x64): the suggestion is a size that works
-    with pytest.raises(predict.WorkingSizeError, match=r"multiples of 8 for model pwc_lite \(try 32x64\)"):
-        predict.check_working_size_option("pwc_lite", 12, 20)
-    with pytest.raises(predict.WorkingSizeError, match=r"^--working-size 16x24: working size 16x24 .* too small "
-                                                       r"for pwc_lite"):
-        predict.check_working_size_option("pwc_lite", 16, 24)
-    predict.check_working_size_option("resnet_md", 128, 192)      # fine: no error
 
 
 def _help_lines(parser):

@@ -47,22 +47,53 @@ INPUT_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.M
 """Working height and width must be multiples of this, per model name."""
 
 
-def check_working_size(name: str, height: Any, width: Any, what: str = "working size") -> None:
-    """Raises ValueError unless height and width are positive integer multiples of `INPUT_MULTIPLE[name]`
-    (and, for pwc_lite, large enough for its 3-level minimum pyramid).
+def suggest_working_size(name: str, height: int, width: int) -> tuple[int, int] | None:
+    """The valid working size of model `name` closest to ``height x width`` (sum of the differences): the
+    nearest multiples of its input multiple (halves round up), grown where the model needs more (pwc_lite's
+    pyramid); None when no size within 16 multiples fits."""
+    multiple = INPUT_MULTIPLE[name]
 
-    `what` names the option in the message (e.g. "config.height/config.width" or "--height/--width").
-    """
+    def nearest(v):
+        return max(multiple, (max(int(v), 0) + multiple // 2) // multiple * multiple)
+
+    def fits(h, w):
+        try:
+            _check_size(name, h, w, "")
+            return True
+        except ValueError:
+            return False
+
+    steps = [k * multiple for k in range(16)]
+    found = [(abs(h - height) + abs(w - width), h, w) for h in (nearest(height) + d for d in steps)
+             for w in (nearest(width) + d for d in steps) if fits(h, w)]
+    return min(found)[1:] if found else None
+
+
+def _check_size(name: str, height: Any, width: Any, what: str) -> None:
     multiple = INPUT_MULTIPLE[name]
     ints = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (height, width))
     if not ints or height <= 0 or width <= 0 or height % multiple or width % multiple:
-        raise ValueError(f"{what} must be positive multiples of {multiple} for {name}, got {height}x{width} "
-                         "(height x width)")
+        raise ValueError(f"{what} {height}x{width}: height and width must be multiples of {multiple} for model "
+                         f"{name}")
     if name == "pwc_lite":
         try:
             pwc_lite.pyramid_levels(int(height), int(width), pwc_lite.MIN_LEVELS)
         except ValueError as e:
-            raise ValueError(f"{what}: {e}") from None
+            raise ValueError(f"{what} {height}x{width}: {e}") from None
+
+
+def check_working_size(name: str, height: Any, width: Any, what: str = "working size") -> None:
+    """Raises ValueError unless height and width are positive integer multiples of `INPUT_MULTIPLE[name]`
+    (and, for pwc_lite, large enough for its 3-level minimum pyramid); the message names `what` (the option,
+    e.g. "config.height/config.width", "--working-size"), the size given and the nearest size that fits:
+    "--working-size 100x200: height and width must be multiples of 64 for model resnet_md (try 128x192)".
+    """
+    try:
+        _check_size(name, height, width, what)
+    except ValueError as e:
+        ints = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (height, width))
+        near = suggest_working_size(name, int(height), int(width)) if ints else None
+        raise ValueError(str(e) + (f" (try {near[0]}x{near[1]})" if near else "")) from None
 
 
 def _as_dict(config: Any) -> dict:
