@@ -102,30 +102,30 @@ def create_train_state(params, tx, rng) -> dict:
             "rng": jnp.asarray(rng, jnp.uint32)}
 
 
-def _all_finite(tree) -> jax.Array:
-    leaves = jax.tree.leaves(tree)
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.array(True)
-
-
 def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     """Adam update with the non-finite guard. Returns (new_state, metrics).
 
-    If the loss, any gradient, the update or any new parameter is NaN/Inf the returned state equals `state`
+    If the loss, the gradient, the update or the new params hold a NaN/Inf the returned state equals `state`
     (nothing moves, not even `step` or the optimiser's moments) and metrics["nonfinite"] = 1. Checking the
     update and the new params too matters: finite gradients can still give a poisoned update (an infinite
-    learning rate, Adam's moments overflowing), and a NaN state once accepted is saved as "good".
+    learning rate, an overflowing step), and a NaN state once accepted is saved as "good".
+
+    The test is on the global L2 norms the metrics report anyway (a norm is NaN/Inf exactly when some element
+    is, or when the values are beyond ~1e19, far past any usable weights): per-leaf `isfinite` reductions over
+    the four trees made XLA:CPU compile the paper's full2 step in 161 s instead of 38 s.
     """
     params, opt_state = state["params"], state["opt_state"]
     updates, new_opt_state = tx.update(grads, opt_state, params)
     new_params = optax.apply_updates(params, updates)
-    ok = (jnp.isfinite(loss) & _all_finite(grads) & _all_finite(updates) & _all_finite(new_params)
-          & _all_finite(new_opt_state))
+    grad_norm, update_norm = optax.tree.norm(grads), optax.tree.norm(updates)
+    ok = (jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(update_norm)
+          & jnp.isfinite(optax.tree.norm(new_params)))
     new_state = {"params": new_params, "opt_state": new_opt_state, "step": state["step"] + 1,
                  "rng": jax.random.fold_in(state["rng"], 0)}
     new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, state)
     metrics = {"loss": loss, **{f"loss/{k}": v for k, v in terms.items()},
-               "grad_norm": optax.tree.norm(grads), "param_norm": optax.tree.norm(new_state["params"]),
-               "update_norm": jnp.where(ok, optax.tree.norm(updates), 0.0),
+               "grad_norm": grad_norm, "param_norm": optax.tree.norm(new_state["params"]),
+               "update_norm": jnp.where(ok, update_norm, 0.0),
                "lr": schedule(state["step"]), "nonfinite": (~ok).astype(jnp.int32)}
     return new_state, metrics
 
