@@ -388,7 +388,7 @@ def _write_status(workdir: str, status: str, step: int, **extra) -> None:
                                                          **extra})
 
 
-def _last_validation(workdir: str) -> dict:
+def last_validation(workdir: str) -> dict:
     """The last "val" record of a workdir's metrics.jsonl (a finished run re-run does not validate again)."""
     last: dict = {}
     path = os.path.join(workdir, "metrics.jsonl")
@@ -527,7 +527,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 if is_main:
                     print(f"\nSaving a checkpoint at step {step} and exiting.", file=sys.stderr, flush=True)
             elif finished_before:
-                val = _last_validation(workdir)
+                val = last_validation(workdir)
             elif val_data:
                 val = run_validation(step)
             skips = pipeline.skip_report()

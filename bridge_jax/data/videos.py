@@ -33,14 +33,21 @@ class VideoError(ValueError):
     """A video that cannot be read, or a stereo pair of videos that does not fit together (names the file)."""
 
 
-def video_frames(path: str) -> Iterator[np.ndarray]:
-    """The frames of a video file as uint8 RGB `(H, W, 3)`, in order; VideoError when none can be read."""
+def _open(path: str):
+    """A cv2.VideoCapture of `path` that opened; VideoError naming the file otherwise."""
     if not os.path.isfile(path):
         raise VideoError(f"video {path} does not exist")
     cap = cv2.VideoCapture(path)
+    if not cap.isOpened():
+        cap.release()
+        raise VideoError(f"cannot open video {path} (not a video, or a codec OpenCV lacks)")
+    return cap
+
+
+def video_frames(path: str) -> Iterator[np.ndarray]:
+    """The frames of a video file as uint8 RGB `(H, W, 3)`, in order; VideoError when none can be read."""
+    cap = _open(path)
     try:
-        if not cap.isOpened():
-            raise VideoError(f"cannot open video {path} (not a video, or a codec OpenCV lacks)")
         n = 0
         while True:
             ok, frame = cap.read()
@@ -56,12 +63,8 @@ def video_frames(path: str) -> Iterator[np.ndarray]:
 
 def video_info(path: str) -> tuple[Optional[int], Optional[float]]:
     """(frame count, frames per second) as the container states them (None when it does not)."""
-    if not os.path.isfile(path):
-        raise VideoError(f"video {path} does not exist")
-    cap = cv2.VideoCapture(path)
+    cap = _open(path)
     try:
-        if not cap.isOpened():
-            raise VideoError(f"cannot open video {path} (not a video, or a codec OpenCV lacks)")
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = cap.get(cv2.CAP_PROP_FPS)
         return (n if n > 0 else None), (fps if fps and fps > 0 else None)

@@ -215,7 +215,7 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     work/demo/train`). The json records the run's config so a test notices when the config moved on."""
     import io
 
-    from bridge_jax import checkpointing, files
+    from bridge_jax import checkpointing, files, train  # train imports this module: import it here, not on top
 
     workdir = Path(workdir).absolute()
     cfg, params = checkpointing.load_params(workdir)
@@ -227,22 +227,8 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     data = buf.getvalue()
     meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
             "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
-            "validation": validation if validation is not None else _last_validation(workdir)}
+            "validation": validation if validation is not None else train.last_validation(str(workdir))}
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
     files.write_json(js, meta)
     return npz
-
-
-def _last_validation(workdir: Path) -> dict:
-    last: dict = {}
-    path = workdir / "metrics.jsonl"
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if rec.get("kind") == "val":
-                last = {k: v for k, v in rec.items() if k not in ("kind", "time")}
-    return last
