@@ -35,7 +35,6 @@ Ctrl-C exits at once without saving); 2 bad input or environment (one line namin
 
 from __future__ import annotations
 
-import difflib
 import json
 import logging
 import math
@@ -643,27 +642,12 @@ def load_config(spec: str, overrides: Sequence[str]) -> ml_collections.ConfigDic
         raise ConfigError(str(e)) from e
     except Exception as e:  # an error inside the user's config file
         raise ConfigError(f"--config {spec}: the config file failed: {type(e).__name__}: {e}") from e
-    known = _flat_keys(config)
     for item in overrides:
         try:
-            configs.override(config, [item])
+            configs.override(config, [item], hint_prefix="--config.")
         except ValueError as e:
-            key = item.partition("=")[0]
-            close = [] if key in known else difflib.get_close_matches(key, known, n=3, cutoff=0.75)
-            hint = f"; did you mean {', '.join('--config.' + c for c in close)}?" if close else ""
-            raise ConfigError(f"--config.{item}: {str(e).split(': ', 1)[-1]}{hint}") from e
+            raise ConfigError(f"--config.{item}: {str(e).split(': ', 1)[-1]}") from e
     return config
-
-
-def _flat_keys(config, prefix: str = "") -> list[str]:
-    """The dotted names of the settable (leaf) fields."""
-    out = []
-    for k, v in config.items():
-        if isinstance(v, ml_collections.ConfigDict):
-            out.extend(_flat_keys(v, f"{prefix}{k}."))
-        else:
-            out.append(prefix + k)
-    return out
 
 
 def _set_verbosity(level: str) -> None:

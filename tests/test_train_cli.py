@@ -272,3 +272,15 @@ def test_debug_flag_shows_the_traceback(monkeypatch, capsys):
     assert train.main(["--config=demo", "--workdir=/w", "--debug"]) == 2
     err = capsys.readouterr().err
     assert "Traceback" in err and err.strip().splitlines()[-1] == "error: config.data: broken"
+
+
+def test_override_names_close_matches_for_every_caller():
+    """The hint lives in configs.override, so bench's --set gets it as well as train's --config.KEY."""
+    from bridge_jax import configs
+    from bridge_jax.bench import cli as bench_cli
+    with pytest.raises(ValueError, match=r"no field 'loss.two_wrap'; did you mean loss.two_warp\?$"):
+        configs.override(configs.load("demo"), ["loss.two_wrap=full2"])
+    with pytest.raises(ValueError, match=r"^--set 'loss.two_wrap=full2': .*did you mean loss.two_warp\?$"):
+        bench_cli.load_config("demo", ["loss.two_wrap=full2"])
+    with pytest.raises(ValueError, match=r"no field 'zzz'$"):  # nothing close: no hint
+        configs.override(configs.load("demo"), ["zzz=1"])

@@ -67,11 +67,29 @@ def _literal(text: str):
         return text
 
 
-def override(config: ml_collections.ConfigDict, items: Sequence[str]) -> ml_collections.ConfigDict:
+def leaf_keys(config: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
+    """The dotted names of the settable (leaf) fields, e.g. "model.name", "loss.two_warp"."""
+    out = []
+    for k, v in config.items():
+        if isinstance(v, ml_collections.ConfigDict):
+            out.extend(leaf_keys(v, f"{prefix}{k}."))
+        else:
+            out.append(prefix + k)
+    return out
+
+
+def override(config: ml_collections.ConfigDict, items: Sequence[str], *,
+             hint_prefix: str = "") -> ml_collections.ConfigDict:
     """Sets `KEY=VALUE` items (dotted keys, Python literals; text where the field is a string) in place.
 
-    Raises ValueError naming the item: not KEY=VALUE, no such field, or a value of the wrong type.
+    Raises ValueError naming the item: not KEY=VALUE, no such field (with the close matches among the fields,
+    each written as `hint_prefix + key`, e.g. "--config.model.name"), or a value of the wrong type.
     """
+    def no_field(item: str, key: str) -> ValueError:
+        close = difflib.get_close_matches(key, leaf_keys(config), n=3, cutoff=0.75)
+        hint = f"; did you mean {', '.join(hint_prefix + c for c in close)}?" if close else ""
+        return ValueError(f"{item!r}: config has no field {key!r}{hint}")
+
     for item in items:
         key, eq, text = item.partition("=")
         if not eq:
@@ -80,10 +98,10 @@ def override(config: ml_collections.ConfigDict, items: Sequence[str]) -> ml_coll
         node = config
         for part in path:
             if not isinstance(node, ml_collections.ConfigDict) or part not in node:
-                raise ValueError(f"{item!r}: config has no field {key!r}")
+                raise no_field(item, key)
             node = node[part]
         if not isinstance(node, ml_collections.ConfigDict) or last not in node:
-            raise ValueError(f"{item!r}: config has no field {key!r}")
+            raise no_field(item, key)
         value = text if isinstance(node[last], str) else _literal(text)
         if isinstance(node[last], float) and isinstance(value, str):
             try:  # "inf", "nan", "1e-4 " (ast cannot read the first two)
