@@ -280,7 +280,7 @@ def test_override_names_close_matches_for_every_caller():
     from bridge_jax.bench import cli as bench_cli
     with pytest.raises(ValueError, match=r"no field 'loss.two_wrap'; did you mean loss.two_warp\?$"):
         configs.override(configs.load("demo"), ["loss.two_wrap=full2"])
-    with pytest.raises(ValueError, match=r"^--set 'loss.two_wrap=full2': .*did you mean loss.two_warp\?$"):
+    with pytest.raises(bench_cli.BenchError, match=r"^--set 'loss.two_wrap=full2': .*did you mean loss.two_warp\?$"):
         bench_cli.load_config("demo", ["loss.two_wrap=full2"])
     with pytest.raises(ValueError, match=r"no field 'zzz'$"):  # nothing close: no hint
         configs.override(configs.load("demo"), ["zzz=1"])
