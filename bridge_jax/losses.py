@@ -12,7 +12,9 @@ Equations of the paper (Sec. 3), each the function that the train step runs:
 `cycle_loss` does the warps itself (for each scale one batched gather of everything that is warped by the same
 maps: both reconstructions, the other direction's pixel map for eq. 6, its fraction map for eq. 9), so that the
 equation functions take pre-warped inputs; that is both what the paper writes (each term compares a map or an
-image with a warped one) and what compiles fast.
+image with a warped one) and what compiles fast. For the same reason each equation runs once per scale on
+stacked rows (`per_row`: both directions of every pair, and the 2-warp chains, in one call), not once per
+direction or chain.
 
 Units: images in [0, 1]; pixel maps in pixels of their scale; fraction maps in fractions of W_s / H_s. All four
 scales are summed with equal weights, and both directions of every pair are used.
@@ -447,31 +449,49 @@ def two_warp_chains(variant: str, p: PairMaps, target: str = "reconstruction") -
     return tuple(chains[name] for name in TWO_WARP_CHAINS[variant])
 
 
+def two_warp_estimates(chains: tuple[TwoWarpChain, ...]):
+    """Eqs. 10-11 of every chain: `(estimates, targets, masks)`, each stacked over the chains `(K, h, w, C)`
+    (masks `(K, h, w, 1)`).
+
+        O'      = W(O, mask_flow)     (eq. 10; O itself when the chain has no mask_flow)
+        I_2warp = W(image, flow)      (eq. 11; `image` is already a 1-warp reconstruction)
+
+    The chains' images go through one gather, the masks that are warped through a second one.
+    """
+    estimates = geometry.warp(jnp.stack([c.image for c in chains]), jnp.stack([c.flow for c in chains]))
+    # The masks are detached (their gradient reaches only mask_flow, through the sampling positions), so they are
+    # warped apart from the images with their source gradient stopped: no scatter for them in the backward pass.
+    warped = [i for i, c in enumerate(chains) if c.mask_flow is not None]
+    masks = [c.mask for c in chains]
+    if warped:
+        out = geometry.warp(jax.lax.stop_gradient(jnp.stack([chains[i].mask for i in warped])),
+                            jnp.stack([chains[i].mask_flow for i in warped]))
+        for k, i in enumerate(warped):
+            masks[i] = out[k]
+    return estimates, jnp.stack([c.target for c in chains]), jnp.stack(masks)
+
+
 def two_warp_loss(chains: tuple[TwoWarpChain, ...], photometric=photometric_loss) -> tuple[Photometric, ...]:
     """2-warp consistency loss (paper eqs. 10-12), one `Photometric` (or `Census`, with `photometric=census_loss`)
-    per chain.
+    per chain: L_2warp = photometric(I_2warp, target, O') (eq. 12) on `two_warp_estimates` (eqs. 10-11).
 
-        O'     = W(O, mask_flow)                  (eq. 10; O itself when the chain has no mask_flow)
-        I_2warp = W(image, flow)                  (eq. 11; `image` is already a 1-warp reconstruction)
-        L_2warp = photometric(I_2warp, target, O')   (eq. 12)
-
-    All warps of the chains (images, then the masks that are warped) go through one gather.
+    (`scale_terms` compares the 2-warp estimates in the same call as the 1-warp reconstructions instead.)
     """
-    srcs = [c.image for c in chains]
-    flows = [c.flow for c in chains]
-    for c in chains:
-        if c.mask_flow is not None:
-            srcs.append(jnp.broadcast_to(c.mask, c.mask.shape[:-1] + (srcs[0].shape[-1],)))
-            flows.append(c.mask_flow)
-    out = geometry.warp(jnp.stack(srcs), jnp.stack(flows))
-    estimates, k = [], len(chains)
-    for i, c in enumerate(chains):
-        mask = c.mask
-        if c.mask_flow is not None:
-            mask = out[k][..., :1]
-            k += 1
-        estimates.append((out[i], c.target, mask))
-    return tuple(photometric(*e) for e in estimates)
+    rows = per_row(photometric, *two_warp_estimates(chains))
+    return tuple(group_mean(rows, i, i + 1) for i in range(len(chains)))
+
+
+def per_row(term, *args):
+    """A term function applied to each row of its stacked arguments (`jax.vmap` over axis 0): the terms of rows
+    of the same shape are one computation, which XLA compiles once instead of once per call. Each `Masked` of
+    the result holds per-row means `(R,)`; `group_mean` turns a range of rows back into one term."""
+    return jax.vmap(term)(*args)
+
+
+def group_mean(rows, start: int, stop: int):
+    """The term of rows `start:stop` of a `per_row` result: the mean over those rows of every per-row mean
+    (rows have equal sizes, so this is the mean over all their pixels)."""
+    return jax.tree.map(lambda x: jnp.mean(x[start:stop]), rows)
 
 
 # ----------------------------------------------------------------------------------- eq. 13: cycle loss
@@ -525,15 +545,18 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     px_f, px_b = cyc.split_directions(px, p)
     fr_f, fr_b = cyc.split_directions(frac, p)
 
-    # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in ONE gather: the reconstructions (latter by
-    # D, former by D'), the other direction's pixel map (eq. 6) and its fraction map (eq. 9). Fewer, wider
-    # gathers compile much faster on XLA:CPU than many small ones.
-    src = jnp.concatenate([jnp.concatenate([latter, former]), jnp.concatenate([px_b, px_f]),
-                           jnp.concatenate([fr_b, fr_f])], axis=-1)
-    warped = geometry.warp(src, jnp.concatenate([px_f, px_b]))
+    # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in two gathers: the reconstructions (latter by
+    # D, former by D') with the other direction's pixel map (eq. 6), then its fraction map (eq. 9). Few, wide
+    # gathers compile much faster on XLA:CPU than many small ones. The first gather's sources get no gradient
+    # (images are data, and the pixel maps only feed the detached masks), so the backward pass runs the gather's
+    # transpose (a scatter, slow on XLA:CPU) only for the fraction maps, whose gradient eq. 9 needs.
+    coords = jnp.concatenate([px_f, px_b])
+    warped = geometry.warp(jax.lax.stop_gradient(jnp.concatenate([jnp.concatenate([latter, former]),
+                                                                  jnp.concatenate([px_b, px_f])], axis=-1)), coords)
+    warped_fr = geometry.warp(jnp.concatenate([fr_b, fr_f]), coords)
     est_f, est_b = warped[:p, ..., :3], warped[p:, ..., :3]  # W(latter, D) ~ former, W(former, D') ~ latter
     px_b_w, px_f_w = warped[:p, ..., 3:5], warped[p:, ..., 3:5]  # W(D', D), W(D, D')
-    fr_b_w, fr_f_w = warped[:p, ..., 5:7], warped[p:, ..., 5:7]
+    fr_b_w, fr_f_w = warped_fr[:p], warped_fr[p:]
 
     # Occlusion masks (eq. 6) on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3). Detached.
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
@@ -545,27 +568,36 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     m_f = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_f))
     m_b = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_b))
 
+    # Every term compares rows of the same shape, so each is ONE computation over stacked rows (`per_row`),
+    # not one call per direction and chain: the SSIM / census graph is built once per scale (eq. 7 for D and
+    # D', eq. 12 for the 2-warp chains), which is most of what XLA compiles for the loss.
     photometric = PHOTOMETRIC_LOSSES[cfg.photometric]
-    photo_fwd = photometric(est_f, former, m_f)
-    photo_bwd = photometric(est_b, latter, m_b)
-    one = jnp.ones((), jnp.float32)  # plain means are Masked(x, 1): every term is reduced the same way
-    smooth = functools.partial(smoothness_loss, beta=cfg.smoothness_edge_constant(), scale=cfg.smooth_scale,
-                               order=cfg.smoothness_order)
-    smooth_fwd = Masked(smooth(px_f, former), one)
-    smooth_bwd = Masked(smooth(px_b, latter), one)
-
-    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
-    lr_fwd = lr_bwd = None
-    if st:  # stereo pairs only
-        rows = lambda x: jnp.stack([x[i] for i in st])
-        lr_fwd = Masked(lr_consistency_loss(rows(fr_f), rows(fr_b_w)), one)
-        lr_bwd = Masked(lr_consistency_loss(rows(fr_b), rows(fr_f_w)), one)
-
-    two_warp = ()
+    estimates, targets, masks = [est_f, est_b], [former, latter], [m_f, m_b]
+    chains = ()
     if cfg.two_warp != "none":
         chains = two_warp_chains(cfg.two_warp, PairMaps(former, latter, px_f, px_b, est_f, est_b, m_f, m_b),
                                  cfg.two_warp_target)
-        two_warp = two_warp_loss(chains, photometric)
+        for part, x in zip((estimates, targets, masks), two_warp_estimates(chains)):
+            part.append(x)
+    photo = per_row(photometric, jnp.concatenate(estimates), jnp.concatenate(targets), jnp.concatenate(masks))
+    photo_fwd, photo_bwd = group_mean(photo, 0, p), group_mean(photo, p, 2 * p)
+    two_warp = tuple(group_mean(photo, 2 * p + i, 2 * p + i + 1) for i in range(len(chains)))
+
+    one = jnp.ones((), jnp.float32)  # plain means are Masked(x, 1): every term is reduced the same way
+    smooth = functools.partial(smoothness_loss, beta=cfg.smoothness_edge_constant(), scale=cfg.smooth_scale,
+                               order=cfg.smoothness_order)
+    smooth_rows = per_row(smooth, px, jnp.concatenate([former, latter]))  # D in the former, D' in the latter
+    smooth_fwd = Masked(group_mean(smooth_rows, 0, p), one)
+    smooth_bwd = Masked(group_mean(smooth_rows, p, 2 * p), one)
+
+    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
+    lr_fwd = lr_bwd = None
+    if st:  # stereo pairs only: (D, W(D', D)) rows, then (D', W(D, D')) rows
+        rows = lambda x: jnp.stack([x[i] for i in st])
+        lr_rows = per_row(lr_consistency_loss, jnp.concatenate([rows(fr_f), rows(fr_b)]),
+                          jnp.concatenate([rows(fr_b_w), rows(fr_f_w)]))
+        lr_fwd = Masked(group_mean(lr_rows, 0, len(st)), one)
+        lr_bwd = Masked(group_mean(lr_rows, len(st), 2 * len(st)), one)
     return ScaleTerms(photo_fwd, photo_bwd, smooth_fwd, smooth_bwd, lr_fwd, lr_bwd, two_warp)
 
 

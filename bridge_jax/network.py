@@ -21,6 +21,16 @@ COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
 """Names of the compute dtypes (None = float32, the models' own dtype)."""
 _ALIASES = {None: "float32", "fp32": "float32", "bf16": "bfloat16"}
 
+REMAT_POLICIES = {
+    "none": None,
+    "conv_outputs": jax.checkpoint_policies.dots_saveable,
+    "nothing": jax.checkpoint_policies.nothing_saveable,
+}
+"""Rematerialisation of the network's forward in the gradient (`jax.checkpoint` policies): "none" keeps every
+activation; "conv_outputs" keeps the outputs of convolutions and matmuls and recomputes the elementwise ops
+between them (activations, bias adds, concatenations, upsampling); "nothing" recomputes the whole forward.
+Gradients are the same; what changes is peak memory and time (experiments/results/perf.md)."""
+
 
 def compute_dtype(dtype: Any):
     """`None` (float32) or `jnp.bfloat16` from a name ("float32", "bfloat16", "fp32", "bf16"), None or a dtype.
@@ -64,11 +74,17 @@ class Network:
       graphdef: the static NNX graph (`models.init` / `models.abstract_init`).
       separate: params are {"stereo": ..., "flow": ...} and rows go through the network of their task.
       dtype: compute dtype (None = float32, or jnp.bfloat16); outputs are float32 either way.
+      remat: a `REMAT_POLICIES` name: which activations the gradient keeps and which it recomputes.
     """
 
     graphdef: Any
     separate: bool = False
     dtype: Any = None
+    remat: str = "none"
+
+    def __post_init__(self):
+        if self.remat not in REMAT_POLICIES:
+            raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
 
     def __call__(self, params, x, is_stereo: Sequence[bool] = ()):
         """x: (N, H, W, 6) float32 pair inputs -> maps {"px": 4 x (N, h, w, 2), "frac": ...} float32.
@@ -94,6 +110,11 @@ class Network:
         return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=0)[inverse], parts[0], parts[1])
 
     def _one(self, params, x):
+        if self.remat != "none":
+            return jax.checkpoint(self._forward, policy=REMAT_POLICIES[self.remat])(params, x)
+        return self._forward(params, x)
+
+    def _forward(self, params, x):
         if self.dtype is not None and self.dtype != jnp.float32:
             maps = models.apply(self.graphdef, params, x.astype(self.dtype), dtype=self.dtype)
         else:

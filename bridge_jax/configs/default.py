@@ -43,6 +43,9 @@ def get_config(arg=None):
     c.model = model_section("resnet_md")
     c.separate_networks = False
     c.dtype = "float32"  # compute dtype; "bfloat16" keeps params/optimizer in float32
+    # Rematerialisation in the gradient (network.REMAT_POLICIES): "none" | "conv_outputs" | "nothing". Same
+    # gradients; on XLA:CPU neither saved memory (experiments/results/perf.md), on accelerators it can.
+    c.remat = "none"
 
     # Loss: every field of losses.LossConfig, with its defaults (the paper's choices; each paper/upstream
     # difference is a switch there). Type 0 = no 2-warp term = the "flow+stereo" model.
