@@ -456,19 +456,23 @@ def two_warp_estimates(chains: tuple[TwoWarpChain, ...]):
         O'      = W(O, mask_flow)     (eq. 10; O itself when the chain has no mask_flow)
         I_2warp = W(image, flow)      (eq. 11; `image` is already a 1-warp reconstruction)
 
-    The chains' images go through one gather, the masks that are warped through a second one.
+    All warps of the chains (images, then the masks that are warped) go through one gather.
     """
-    estimates = geometry.warp(jnp.stack([c.image for c in chains]), jnp.stack([c.flow for c in chains]))
-    # The masks are detached (their gradient reaches only mask_flow, through the sampling positions), so they are
-    # warped apart from the images with their source gradient stopped: no scatter for them in the backward pass.
-    warped = [i for i, c in enumerate(chains) if c.mask_flow is not None]
-    masks = [c.mask for c in chains]
-    if warped:
-        out = geometry.warp(jax.lax.stop_gradient(jnp.stack([chains[i].mask for i in warped])),
-                            jnp.stack([chains[i].mask_flow for i in warped]))
-        for k, i in enumerate(warped):
-            masks[i] = out[k]
-    return estimates, jnp.stack([c.target for c in chains]), jnp.stack(masks)
+    srcs = [c.image for c in chains]
+    flows = [c.flow for c in chains]
+    for c in chains:
+        if c.mask_flow is not None:
+            srcs.append(jnp.broadcast_to(c.mask, c.mask.shape[:-1] + (srcs[0].shape[-1],)))
+            flows.append(c.mask_flow)
+    out = geometry.warp(jnp.stack(srcs), jnp.stack(flows))
+    masks, k = [], len(chains)
+    for c in chains:
+        if c.mask_flow is not None:
+            masks.append(out[k][..., :1])
+            k += 1
+        else:
+            masks.append(c.mask)
+    return out[:len(chains)], jnp.stack([c.target for c in chains]), jnp.stack(masks)
 
 
 def two_warp_loss(chains: tuple[TwoWarpChain, ...], photometric=photometric_loss) -> tuple[Photometric, ...]:
@@ -545,18 +549,15 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     px_f, px_b = cyc.split_directions(px, p)
     fr_f, fr_b = cyc.split_directions(frac, p)
 
-    # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in two gathers: the reconstructions (latter by
-    # D, former by D') with the other direction's pixel map (eq. 6), then its fraction map (eq. 9). Few, wide
-    # gathers compile much faster on XLA:CPU than many small ones. The first gather's sources get no gradient
-    # (images are data, and the pixel maps only feed the detached masks), so the backward pass runs the gather's
-    # transpose (a scatter, slow on XLA:CPU) only for the fraction maps, whose gradient eq. 9 needs.
-    coords = jnp.concatenate([px_f, px_b])
-    warped = geometry.warp(jax.lax.stop_gradient(jnp.concatenate([jnp.concatenate([latter, former]),
-                                                                  jnp.concatenate([px_b, px_f])], axis=-1)), coords)
-    warped_fr = geometry.warp(jnp.concatenate([fr_b, fr_f]), coords)
+    # Everything warped by D (rows 0..P-1) or D' (rows P..2P-1) in ONE gather: the reconstructions (latter by
+    # D, former by D'), the other direction's pixel map (eq. 6) and its fraction map (eq. 9). Fewer, wider
+    # gathers compile much faster on XLA:CPU than many small ones.
+    src = jnp.concatenate([jnp.concatenate([latter, former]), jnp.concatenate([px_b, px_f]),
+                           jnp.concatenate([fr_b, fr_f])], axis=-1)
+    warped = geometry.warp(src, jnp.concatenate([px_f, px_b]))
     est_f, est_b = warped[:p, ..., :3], warped[p:, ..., :3]  # W(latter, D) ~ former, W(former, D') ~ latter
     px_b_w, px_f_w = warped[:p, ..., 3:5], warped[p:, ..., 3:5]  # W(D', D), W(D, D')
-    fr_b_w, fr_f_w = warped_fr[:p], warped_fr[p:]
+    fr_b_w, fr_f_w = warped[:p, ..., 5:7], warped[p:, ..., 5:7]
 
     # Occlusion masks (eq. 6) on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3). Detached.
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
