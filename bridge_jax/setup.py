@@ -205,10 +205,10 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
         optimizer_values = {f.name: config[f.name] for f in dataclasses.fields(OptimizerConfig)}
         optimizer_values["lr_milestones"] = tuple(int(m) for m in optimizer_values["lr_milestones"])
         fields = {name: config[name] for name in (
-            "height", "width", "global_batch", "seed", "dtype", "remat", "separate_networks", "micro_batch", "steps_per_epoch",
-            "num_epochs", "num_train_steps", "init_from", "compilation_cache_dir", "num_devices", "eval_every",
-            "image_every", "checkpoint_every", "keep_checkpoints", "async_checkpoints", "log_every", "progress_bar",
-            "max_nonfinite_in_row")}
+            "height", "width", "global_batch", "seed", "dtype", "remat", "separate_networks", "micro_batch",
+            "steps_per_epoch", "num_epochs", "num_train_steps", "init_from", "compilation_cache_dir", "num_devices",
+            "eval_every", "image_every", "checkpoint_every", "keep_checkpoints", "async_checkpoints", "log_every",
+            "progress_bar", "max_nonfinite_in_row")}
     except (AttributeError, KeyError) as e:
         raise ConfigError(f"the config has no field {e} (configs are built from bridge_jax/configs/default.py)") from e
 

@@ -46,8 +46,9 @@ def per_call_scale_terms(px, frac, frames, cfg: losses.LossConfig) -> losses.Sca
     m_b = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_b))
     photometric = losses.PHOTOMETRIC_LOSSES[cfg.photometric]
     one = jnp.ones((), px.dtype)
-    smooth = lambda d, im: losses.Masked(losses.smoothness_loss(d, im, beta=cfg.smoothness_edge_constant(),
-                                                                scale=cfg.smooth_scale, order=cfg.smoothness_order), one)
+    def smooth(d, im):
+        return losses.Masked(losses.smoothness_loss(d, im, beta=cfg.smoothness_edge_constant(), scale=cfg.smooth_scale,
+                                                    order=cfg.smoothness_order), one)
     st = np.array([i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo], int)
     lr_fwd = lr_bwd = None
     if st.size:
