@@ -6,7 +6,9 @@ Equations of the paper (Sec. 3), each the function that the train step runs:
   eq. 7   reconstruction loss  L_rec            `photometric_loss`: alpha (1 - SSIM)/2 + (1 - alpha) L1, masked
   eq. 8   edge-aware smoothness  L_sm           `smoothness_loss` (2nd-order on the map, 1st-order on the image)
   eq. 9   left-right consistency  L_lr          `lr_consistency_loss` (stereo pairs, fraction units)
-  eqs. 10-12  2-warp consistency  L_2warp      `two_warp_chains` (which images, maps and masks) + `two_warp_loss`
+  eqs. 10-12  2-warp consistency  L_2warp      `two_warp_chains` (which images, maps and masks) +
+                                               `two_warp_estimates` (eqs. 10-11), then eq. 7's function (eq. 12;
+                                               `two_warp_loss` is the same for the chains alone)
   eq. 13  total loss                            `cycle_loss`: the weighted sum over scales, pairs and directions
 
 `cycle_loss` does the warps itself (for each scale one batched gather of everything that is warped by the same

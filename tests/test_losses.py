@@ -22,7 +22,8 @@ def photometric_value(estimate, target, mask, alpha=0.85):
 
 def two_warp_value(px, former, latter, mask_fwd, mask_bwd, cfg):
     """The weighted 2-warp loss of one cycle at one scale and its per-chain values, through the functions the
-    training runs (two_warp_chains + two_warp_loss) on the 1-warp reconstructions of the maps."""
+    training runs (two_warp_chains, then two_warp_loss = two_warp_estimates + the photometric term) on the 1-warp
+    reconstructions of the maps."""
     est_fwd = geometry.warp(latter, px[:4])
     est_bwd = geometry.warp(former, px[4:])
     p = losses.PairMaps(former, latter, px[:4], px[4:], est_fwd, est_bwd, mask_fwd, mask_bwd)

@@ -6,8 +6,9 @@ import jax
 import numpy as np
 import pytest
 
-from bridge_jax import network, setup, train_step
+from bridge_jax import network, setup
 from bridge_jax.configs import default as default_config
+from tests.train_helpers import plain_loss_and_grads
 
 
 def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128):
@@ -21,8 +22,7 @@ def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128):
     net = run.model.network(graphdef)
     assert net.remat == remat
     cycles = np.random.default_rng(2).random((1, 4, height, width, 3), dtype=np.float32)
-    fn = jax.jit(lambda p, x: train_step.loss_and_grads(p, x, net=net, loss_cfg=run.loss))
-    (loss, _), grads = fn(params, cycles)
+    (loss, _), grads = plain_loss_and_grads(net, run.loss)(params, cycles)
     return float(loss), grads
 
 
