@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import models
+from bridge_jax.models import layers
 
 COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
 """Names of the compute dtypes (None = float32, the models' own dtype)."""
@@ -75,16 +76,22 @@ class Network:
       separate: params are {"stereo": ..., "flow": ...} and rows go through the network of their task.
       dtype: compute dtype (None = float32, or jnp.bfloat16); outputs are float32 either way.
       remat: a `REMAT_POLICIES` name: which activations the gradient keeps and which it recomputes.
+      conv_weight_grad: how the convolutions' weight gradients are computed (`layers.WEIGHT_GRAD_METHODS`;
+        "auto" = the formulation measured fastest for each layer on the backend). Same gradients either way.
     """
 
     graphdef: Any
     separate: bool = False
     dtype: Any = None
     remat: str = "none"
+    conv_weight_grad: str = "auto"
 
     def __post_init__(self):
         if self.remat not in REMAT_POLICIES:
             raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
+        if self.conv_weight_grad not in layers.WEIGHT_GRAD_METHODS:
+            raise ValueError(f"conv_weight_grad must be one of {list(layers.WEIGHT_GRAD_METHODS)}, "
+                             f"got {self.conv_weight_grad!r}")
 
     def __call__(self, params, x, is_stereo: Sequence[bool] = ()):
         """x: (N, H, W, 6) float32 pair inputs -> maps {"px": 4 x (N, h, w, 2), "frac": ...} float32.
@@ -115,10 +122,12 @@ class Network:
         return self._forward(params, x)
 
     def _forward(self, params, x):
-        if self.dtype is not None and self.dtype != jnp.float32:
-            maps = models.apply(self.graphdef, params, x.astype(self.dtype), dtype=self.dtype)
-        else:
-            maps = models.apply(self.graphdef, params, x)
+        # The method is read while the forward is traced; the backward pass it defines is traced with it.
+        with layers.weight_grad_method(self.conv_weight_grad):
+            if self.dtype is not None and self.dtype != jnp.float32:
+                maps = models.apply(self.graphdef, params, x.astype(self.dtype), dtype=self.dtype)
+            else:
+                maps = models.apply(self.graphdef, params, x)
         return jax.tree.map(lambda m: m.astype(jnp.float32), maps)
 
     def static_rows(self, is_stereo: Sequence[bool]) -> tuple[bool, ...]:

@@ -21,6 +21,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 from bridge_jax import cycle, losses, models
 from bridge_jax.data.pipeline import DataConfig
 from bridge_jax.micro_batch import MicroBatchedStep
+from bridge_jax.models.layers import WEIGHT_GRAD_METHODS
 from bridge_jax.network import COMPUTE_DTYPES, REMAT_POLICIES, Network, compute_dtype
 from bridge_jax.train_step import OptimizerConfig, make_train_step
 
@@ -33,15 +34,18 @@ class ConfigError(ValueError):
 class ModelSpec:
     """The network of a run: `config` is the full model description (`models.model_config`, what model.json
     stores), `separate` the paper's no-sharing variant (two networks), `dtype` the compute dtype name, `remat`
-    the rematerialisation policy of the training gradient (`network.REMAT_POLICIES`)."""
+    the rematerialisation policy of the training gradient (`network.REMAT_POLICIES`), `conv_weight_grad` how
+    the convolutions compute their weight gradients (`layers.WEIGHT_GRAD_METHODS`)."""
 
     config: dict
     separate: bool
     dtype: str
     remat: str = "none"
+    conv_weight_grad: str = "auto"
 
     def network(self, graphdef) -> Network:
-        return Network(graphdef, separate=self.separate, dtype=compute_dtype(self.dtype), remat=self.remat)
+        return Network(graphdef, separate=self.separate, dtype=compute_dtype(self.dtype), remat=self.remat,
+                       conv_weight_grad=self.conv_weight_grad)
 
     def model_json(self) -> dict:
         """What a workdir's model.json holds (the params-only loaders read it)."""
@@ -205,7 +209,8 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
         optimizer_values = {f.name: config[f.name] for f in dataclasses.fields(OptimizerConfig)}
         optimizer_values["lr_milestones"] = tuple(int(m) for m in optimizer_values["lr_milestones"])
         fields = {name: config[name] for name in (
-            "height", "width", "global_batch", "seed", "dtype", "remat", "separate_networks", "micro_batch",
+            "height", "width", "global_batch", "seed", "dtype", "remat", "conv_weight_grad", "separate_networks",
+            "micro_batch",
             "steps_per_epoch", "num_epochs", "num_train_steps", "init_from", "compilation_cache_dir", "num_devices",
             "eval_every", "image_every", "checkpoint_every", "keep_checkpoints", "async_checkpoints", "log_every",
             "progress_bar", "max_nonfinite_in_row")}
@@ -224,6 +229,9 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
         raise ConfigError(f"config.dtype must be one of {sorted(COMPUTE_DTYPES)}, got {fields['dtype']!r}")
     if fields["remat"] not in REMAT_POLICIES:
         raise ConfigError(f"config.remat must be one of {sorted(REMAT_POLICIES)}, got {fields['remat']!r}")
+    if fields["conv_weight_grad"] not in WEIGHT_GRAD_METHODS:
+        raise ConfigError(f"config.conv_weight_grad must be one of {list(WEIGHT_GRAD_METHODS)}, got "
+                          f"{fields['conv_weight_grad']!r}")
     try:
         loss_cfg = losses.LossConfig.from_dict(loss_values)
     except (ValueError, TypeError) as e:
@@ -264,7 +272,8 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
                           f"{rows_per_device} pair-forwards per device")
 
     return Run(
-        model=ModelSpec(model_cfg, bool(fields["separate_networks"]), str(fields["dtype"]), str(fields["remat"])),
+        model=ModelSpec(model_cfg, bool(fields["separate_networks"]), str(fields["dtype"]), str(fields["remat"]),
+                        str(fields["conv_weight_grad"])),
         loss=loss_cfg, optimizer=optimizer, data=data, eval=eval_cfg,
         loop=LoopConfig(int(fields["checkpoint_every"]), int(fields["keep_checkpoints"]),
                         bool(fields["async_checkpoints"]), int(fields["log_every"]), bool(fields["progress_bar"]),

@@ -162,15 +162,19 @@ def test_micro_batched_equals_plain_through_bench_builder():
     assert int(s1["step"]) == int(s2["step"]) == 1 and int(m2["nonfinite"]) == 0
 
 
-def test_conv_backward_records_both_weight_gradients(monkeypatch):
-    """--what conv_backward: per layer shape one XLA and one 9-shifted-dots record, the same weight gradient
-    (checked inside against XLA's) and the time ratio; two small layers keep it quick."""
+def test_conv_backward_records_every_weight_gradient_method(monkeypatch):
+    """--what conv_backward: per layer shape one record per weight-gradient method (XLA's, shifted dy, shifted
+    x, XLA's in batch chunks, XLA's in NCHW), the same weight gradient (checked inside against XLA's), the time
+    ratio and what "auto" picks; two small layers keep it quick."""
     import argparse
-    monkeypatch.setattr(bench.measure, "CONV3X3_LAYERS", ((4, 8, 16, 1), (4, 16, 8, 2)))
+    monkeypatch.setattr(bench.measure, "CONV_LAYERS", ((4, 8, 16, 1, 3, ((1, 1), (1, 1))),
+                                                       (4, 64, 8, 2, 2, ((1, 0), (1, 0)))))
     config = bench.load_config("default:local")
-    recs = bench.measure_conv_backward(config, argparse.Namespace(repeats=2, warmup=1))
-    assert [r["weight_grad"] for r in recs] == ["xla", "dots", "xla", "dots"]
-    assert [r["layer"] for r in recs[::2]] == [[2, 32, 64, 8, 16, 1], [2, 32, 64, 16, 8, 2]]
+    recs = bench.measure_conv_backward(config, argparse.Namespace(repeats=2, warmup=1, conv_batch=3))
+    assert [r["weight_grad"] for r in recs] == ["xla", "shift_dy", "shift_x", "xla_chunks", "xla_nchw"] * 2
+    assert [r["layer"] for r in recs[::5]] == [[3, 32, 64, 8, 16, 1], [3, 32, 64, 64, 8, 2]]
+    assert [r["kernel"] for r in recs[::5]] == [3, 2] and recs[5]["padding"] == [[1, 0], [1, 0]]
+    assert {r["auto_picks"] for r in recs} == {"xla"}  # 8 channels; stride 2
     for r in recs:
         assert r["what"] == "conv_backward" and r["min_s"] <= r["median_s"] <= r["max_s"] and not r["recompiled"]
         assert r["flops"] > 0 and r["dw_rel_diff_vs_xla"] < 1e-5

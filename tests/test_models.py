@@ -401,30 +401,85 @@ def test_head_init_rejects_unknown_value():
         models.model_config("pwcnet", head_init="torch")
 
 
-@pytest.mark.parametrize("stride", [1, 2])
-def test_dots_weight_grad_conv_matches_numpy(rng, stride, monkeypatch):
-    """The 9-shifted-dots weight gradient (perf option) equals the definition dW[i,j] = sum xpad_shift^T dy,
-    computed in float64 numpy; values and input gradient equal the plain conv's."""
-    x = rng.standard_normal((2, 7, 9, 5))
-    k = rng.standard_normal((3, 3, 5, 4))
-    y_ref = np_conv(x, k, stride=stride)
-    g = rng.standard_normal(y_ref.shape)
-    monkeypatch.setattr(layers, "DOTS_WEIGHT_GRAD_MIN_CHANNELS", 1)
-    assert layers._use_dots_weight_grad(k.shape, 1)
-    f = lambda a, b: jnp.sum(layers.conv2d(a, b, stride=stride) * f32(g))  # noqa: E731
-    np.testing.assert_allclose(np.asarray(layers.conv2d(f32(x), f32(k), stride=stride)), y_ref, atol=1e-4)
-    dx, dk = jax.grad(f, argnums=(0, 1))(f32(x), f32(k))
-    xp = np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+def np_weight_grad(x, g, k_shape, stride, pad, dilation):
+    """dW[i, j] = sum_{n, o} xpad[n, s*o + d*(i, j)]^T g[n, o], float64, padding ((top, bottom), (left, right))."""
+    xp = np.pad(x, ((0, 0), pad[0], pad[1], (0, 0)))
     ho, wo = g.shape[1:3]
-    dk_ref = np.zeros_like(k)
-    for i in range(3):
-        for j in range(3):
-            patch = xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
-            dk_ref[i, j] = np.einsum("nhwc,nhwo->co", patch, g)
+    dk = np.zeros(k_shape)
+    for i in range(k_shape[0]):
+        for j in range(k_shape[1]):
+            patch = xp[:, i * dilation:i * dilation + stride * (ho - 1) + 1:stride,
+                       j * dilation:j * dilation + stride * (wo - 1) + 1:stride]
+            dk[i, j] = np.einsum("nhwc,nhwo->co", patch, g)
+    return dk
+
+
+@pytest.mark.parametrize("method", ["shift_dy", "shift_x", "xla_chunks"])
+@pytest.mark.parametrize("kernel,stride,pad,dilation", [
+    (3, 1, ((1, 1), (1, 1)), 1), (3, 2, ((1, 1), (1, 1)), 1), (3, 1, ((2, 2), (2, 2)), 2),
+    (2, 1, ((1, 0), (0, 1)), 1),  # a sub-pixel phase: asymmetric padding
+    (7, 2, ((3, 3), (3, 3)), 1), (3, 2, ((0, 2), (1, 0)), 1)])
+def test_weight_grad_methods_match_the_float64_definition(rng, method, kernel, stride, pad, dilation):
+    """Each weight-gradient formulation of `layers.conv_nhwc` gives the numpy float64 dW, and the forward and
+    the input gradient stay XLA's (the same as method "xla")."""
+    x = rng.standard_normal((3, 9, 11, 5))  # 3 rows: xla_chunks sums a chunk of 2 and one of 1
+    k = rng.standard_normal((kernel, kernel, 5, 4))
+    with layers.weight_grad_method("xla"):
+        y = layers.conv_nhwc(f32(x), f32(k), stride, pad, dilation)
+    g = rng.standard_normal(y.shape)
+
+    def f(a, b):
+        return jnp.sum(layers.conv_nhwc(a, b, stride, pad, dilation) * f32(g))
+
+    with layers.weight_grad_method(method):
+        jaxpr = str(jax.make_jaxpr(jax.grad(f, argnums=(0, 1)))(f32(x), f32(k)))
+        dx, dk = jax.grad(f, argnums=(0, 1))(f32(x), f32(k))
+    with layers.weight_grad_method("xla"):
+        jaxpr_xla = str(jax.make_jaxpr(jax.grad(f, argnums=(0, 1)))(f32(x), f32(k)))
+    # the method is really in use: matmuls, or one backward convolution per chunk, instead of XLA's one
+    if method == "xla_chunks":
+        assert jaxpr.count("conv_general_dilated") > jaxpr_xla.count("conv_general_dilated")
+    else:
+        assert "dot_general" in jaxpr and "dot_general" not in jaxpr_xla
+    with layers.weight_grad_method("xla"):
+        dx_xla, dk_xla = jax.grad(f, argnums=(0, 1))(f32(x), f32(k))
+    dk_ref = np_weight_grad(x, g, k.shape, stride, pad, dilation)
     np.testing.assert_allclose(np.asarray(dk), dk_ref, rtol=1e-4, atol=1e-4)
-    monkeypatch.setattr(layers, "DOTS_WEIGHT_GRAD_MIN_CHANNELS", 0)
-    dx_plain = jax.grad(f, argnums=0)(f32(x), f32(k))
-    np.testing.assert_allclose(np.asarray(dx), np.asarray(dx_plain), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(dk_xla), dk_ref, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(dx), np.asarray(dx_xla))
+
+
+def test_weight_grad_shift_dy_is_exact_in_float64(rng):
+    """In float64 the shifted-dy matmuls equal the definition to rounding (1e-12), so the float32 differences
+    to XLA are summation order only."""
+    with jax.enable_x64(True):
+        x = rng.standard_normal((2, 8, 10, 6))
+        g = rng.standard_normal((2, 4, 5, 3))
+        dk = layers.weight_grad_shift_dy(jnp.asarray(x), jnp.asarray(g), (3, 3, 6, 3), 2, ((1, 1), (1, 1)))
+        assert dk.dtype == jnp.float64
+        np.testing.assert_allclose(np.asarray(dk), np_weight_grad(x, g, (3, 3, 6, 3), 2, ((1, 1), (1, 1)), 1),
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_auto_weight_grad_uses_shift_dy_only_where_measured_faster(monkeypatch):
+    """"auto" on CPU: shift_dy for stride-1 convs with >= SHIFT_DY_MIN_CHANNELS input channels, chunks of XLA's
+    for the 7x7 stem on the image pair when the batch is larger than a chunk, else XLA's; on other backends
+    always XLA's. Unknown names are refused."""
+    r = layers.resolve_weight_grad
+    n = layers.SHIFT_DY_MIN_CHANNELS
+    with layers.weight_grad_method("auto"):
+        assert r((2, 32, 64, n), (3, 3, n, 8), 1) == "shift_dy"
+        assert r((2, 32, 64, n - 1), (3, 3, n - 1, 8), 1) == "xla"
+        assert r((2, 32, 64, n), (3, 3, n, 8), 2) == "xla"
+        assert r((16, 256, 512, 6), (7, 7, 6, 64), 2) == "xla_chunks"
+        assert r((2, 256, 512, 6), (7, 7, 6, 64), 2) == "xla"  # one chunk: nothing to split
+        assert r((16, 64, 128, 6), (3, 3, 6, 16), 1) == "xla"
+        monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+        assert r((2, 32, 64, n), (3, 3, n, 8), 1) == "xla"
+    assert r((2, 32, 64, 8), (3, 3, 8, 8), 2, "shift_x") == "shift_x"
+    with pytest.raises(ValueError, match="conv_weight_grad must be one of"):
+        with layers.weight_grad_method("fast"):
+            pass
 
 
 def test_im2col_conv_path_matches_numpy(rng, monkeypatch):

@@ -1,6 +1,10 @@
-"""Rematerialisation (`config.remat`, `network.REMAT_POLICIES`) recomputes activations in the gradient; the
-loss and every gradient must stay what the plain network gives (to 1e-6), for both architectures the demo and the
-paper use, and a policy name outside the list is one config error."""
+"""Options that change how the gradient is computed but not what it is.
+
+Rematerialisation (`config.remat`, `network.REMAT_POLICIES`) recomputes activations in the gradient, and
+`config.conv_weight_grad` (`layers.WEIGHT_GRAD_METHODS`) computes the convolutions' weight gradients as matmuls
+instead of XLA's backward-filter convolution. The loss and every gradient must stay what the plain network gives
+(to 1e-6 for remat, to float32 summation order for the weight gradients), for both architectures the demo and
+the paper use, and a name outside either list is one config error."""
 
 import jax
 import numpy as np
@@ -11,16 +15,17 @@ from bridge_jax.configs import default as default_config
 from tests.train_helpers import plain_loss_and_grads
 
 
-def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128):
+def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128, conv_weight_grad: str = "auto"):
     c = default_config.get_config()
     c.model = default_config.model_section(model)
     c.height, c.width, c.global_batch, c.remat = height, width, 1, remat
+    c.conv_weight_grad = conv_weight_grad
     run = setup.parse(c, devices=jax.devices()[:1], num_processes=1)
     graphdef, params = network.init_params(jax.random.key(0), run.model.config)
     params = jax.tree.map(lambda p: p + 0.01 * np.random.default_rng(1).standard_normal(p.shape).astype(p.dtype),
                           params)  # zero heads would give zero maps; move every weight off its init
     net = run.model.network(graphdef)
-    assert net.remat == remat
+    assert net.remat == remat and net.conv_weight_grad == conv_weight_grad
     cycles = np.random.default_rng(2).random((1, 4, height, width, 3), dtype=np.float32)
     (loss, _), grads = plain_loss_and_grads(net, run.loss)(params, cycles)
     return float(loss), grads
@@ -46,3 +51,28 @@ def test_remat_policy_names_are_checked():
         setup.parse(c, devices=jax.devices()[:1], num_processes=1)
     with pytest.raises(ValueError, match="remat must be one of"):
         network.Network(None, remat="some")
+
+
+@pytest.mark.parametrize("model,size", [("resnet_md_tiny", (64, 128)),
+                                        pytest.param("pwc_lite", (32, 64), marks=pytest.mark.slow)])
+def test_conv_weight_grad_methods_change_no_gradient(model, size):
+    """Every convolution's weight gradient by shifted-dy or shifted-x matmuls, or by XLA's in batch chunks
+    (forced for all layers here; "auto" picks per layer) gives XLA's gradients to float32 summation order."""
+    loss0, g0 = _loss_and_grads(model, "none", *size, conv_weight_grad="xla")
+    scale = max(float(np.max(np.abs(x))) for x in jax.tree.leaves(g0))
+    assert scale > 1e-4
+    for method in ("shift_dy", "shift_x", "xla_chunks"):
+        loss, g = _loss_and_grads(model, "none", *size, conv_weight_grad=method)
+        assert loss == loss0  # the forward pass is XLA's in every method
+        worst = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                    for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g0)))
+        assert 0 < worst <= 2e-6 * scale, (method, worst, scale)  # > 0: the other formulation really ran
+
+
+def test_conv_weight_grad_names_are_checked():
+    c = default_config.get_config()
+    c.conv_weight_grad = "fast"
+    with pytest.raises(setup.ConfigError, match=r"config.conv_weight_grad must be one of \['auto', 'xla', "):
+        setup.parse(c, devices=jax.devices()[:1], num_processes=1)
+    with pytest.raises(ValueError, match="conv_weight_grad must be one of"):
+        network.Network(None, conv_weight_grad="fast")

@@ -10,11 +10,11 @@
 
 from bridge_jax.bench.cli import WHATS, load_config, main, run
 from bridge_jax.bench.device import PEAK_TFLOPS, known_peak_tflops
-from bridge_jax.bench.measure import (CONV3X3_LAYERS, bench_run, build_train_step, measure_conv_backward,
+from bridge_jax.bench.measure import (CONV_LAYERS, bench_run, build_train_step, measure_conv_backward,
                                       random_maps)
 from bridge_jax.bench.records import REQUIRED_FIELDS, table
 from bridge_jax.bench.timing import BenchError, RecompilationError, time_calls
 
-__all__ = ["WHATS", "load_config", "main", "run", "PEAK_TFLOPS", "known_peak_tflops", "CONV3X3_LAYERS", "bench_run",
+__all__ = ["WHATS", "load_config", "main", "run", "PEAK_TFLOPS", "known_peak_tflops", "CONV_LAYERS", "bench_run",
            "build_train_step", "measure_conv_backward", "random_maps", "REQUIRED_FIELDS", "table", "BenchError",
            "RecompilationError", "time_calls"]

@@ -5,6 +5,7 @@ r"""Benchmarks: train step, inference, loss alone and the input pipeline, measur
     python -m bridge_jax.bench --what loss --config full2 --cycles 2 --train-step-s 30.1
     python -m bridge_jax.bench --what all --config default:local --json out.jsonl
     python -m bridge_jax.bench --what train_step --config default --peer      # + upstream PyTorch beside it
+    python -m bridge_jax.bench --what conv_backward --config default --conv-batch 16   # weight-grad methods
 
 Every measurement reports: compile time, median / min / max wall time per call over `--repeats` calls after
 `--warmup` calls (results are `block_until_ready`-ed, so the times are real), peak host RSS (`ru_maxrss` of the
@@ -97,6 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train_step: 0 = plain step, k = maps-first micro-batches of k pair-forwards, -1 = the "
                         "trainer's auto; comma list (default: the config's micro_batch)")
     p.add_argument("--pairs", type=int, default=1, help="inference: pairs per call")
+    p.add_argument("--conv-batch", type=int, default=2,
+                   help="conv_backward: pair-forwards per convolution (2 = the CPU micro-batch, 16 = a plain step "
+                        "of 2 cycles)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per measurement")
     p.add_argument("--warmup", type=int, default=1, help="untimed calls after compiling, before the timed ones")
     p.add_argument("--devices", type=int, default=None, help="train_step: shard over this many devices")

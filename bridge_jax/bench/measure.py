@@ -241,48 +241,75 @@ def measure_loss(config, args) -> list[dict]:
     return recs
 
 
-# 3x3 conv layers of resnet_md at input H x W as (H divisor, Cin, Cout, stride): encoder bottleneck 3x3s (the
-# stride-2 ones first in their stage), decoder iconvs (concatenated skip + upsampled map widths).
-CONV3X3_LAYERS = ((4, 64, 64, 1), (4, 128, 128, 2), (8, 128, 128, 1), (8, 256, 256, 2), (16, 256, 256, 1),
-                  (16, 512, 512, 2), (32, 512, 512, 1), (16, 514, 128, 1), (8, 258, 64, 1), (4, 130, 32, 1),
-                  (2, 98, 32, 1), (1, 18, 16, 1), (2, 64, 32, 1), (4, 128, 64, 1))
+# Convolutions of resnet_md at input H x W as (H divisor, Cin, Cout, stride, kernel, padding ((top, bottom),
+# (left, right))): the 7x7 stem, the encoder bottleneck 3x3s (the stride-2 ones first in their stage), the
+# decoder iconvs (concatenated skip + upsampled map widths), and two of the sub-pixel upconvs' 2x2 phases.
+_P1 = ((1, 1), (1, 1))
+CONV_LAYERS = ((1, 6, 64, 2, 7, ((3, 3), (3, 3))),
+               (4, 64, 64, 1, 3, _P1), (4, 128, 128, 2, 3, _P1), (8, 128, 128, 1, 3, _P1), (8, 256, 256, 2, 3, _P1),
+               (16, 256, 256, 1, 3, _P1), (16, 512, 512, 2, 3, _P1), (32, 512, 512, 1, 3, _P1),
+               (16, 768, 256, 1, 3, _P1), (8, 384, 128, 1, 3, _P1), (4, 130, 64, 1, 3, _P1), (2, 98, 32, 1, 3, _P1),
+               (1, 18, 16, 1, 3, _P1), (1, 16, 2, 1, 3, _P1), (4, 64, 32, 1, 2, ((1, 0), (1, 0))),
+               (8, 128, 64, 1, 2, ((0, 1), (0, 1))))
+CONV_WEIGHT_GRADS = ("xla", "shift_dy", "shift_x", "xla_chunks", "xla_nchw")
+"""The methods `--what conv_backward` times: the four of `layers.WEIGHT_GRAD_METHODS` (NHWC) and XLA's own
+backward in the NCHW / OIHW layout (the transposes are outside the timed function)."""
+CONV_COPIES_MAX_BYTES = 4 << 30
+"""A shifted-copy method whose kh*kw copies would take more than this is not timed for that layer."""
 
 
 def measure_conv_backward(config, args) -> list[dict]:
-    """Gradient of one 3x3 conv w.r.t. input and weights: XLA's own conv backward vs the weight gradient as 9
-    shifted dots (models.layers._conv_dots_wgrad), for the resnet_md layer shapes at the config's size, batch =
-    2 pair-forwards (the CPU micro-batch). Each pair is timed interleaved in the same process."""
-    n = 2
+    """Gradient of one convolution w.r.t. input and weights, for each of `CONV_WEIGHT_GRADS` ("xla" = XLA's own
+    backward-filter conv, "shift_dy" / "shift_x" = one matmul per kernel tap, "xla_chunks" = XLA's on chunks of
+    the batch, "xla_nchw" = XLA's in the NCHW layout), for the resnet_md layer shapes at the config's size;
+    batch `--conv-batch` pair-forwards (2 = the CPU micro-batch, 16 = the plain step of 2 cycles). The methods
+    are timed interleaved in the same process. Each record also says which method "auto" picks for that layer
+    here."""
+    n = int(getattr(args, "conv_batch", None) or 2)
     recs = []
-    for div, ci, co, stride in CONV3X3_LAYERS:
+    for div, ci, co, stride, ksize, pad in CONV_LAYERS:
         h, w = max(1, int(config.height) // div), max(1, int(config.width) // div)
         rng = np.random.default_rng(0)
         x = jnp.asarray(rng.standard_normal((n, h, w, ci), np.float32))
-        k = jnp.asarray(rng.standard_normal((3, 3, ci, co), np.float32) * 0.05)
-        g = jnp.asarray(rng.standard_normal((n, (h - 1) // stride + 1, (w - 1) // stride + 1, co), np.float32))
+        k = jnp.asarray(rng.standard_normal((ksize, ksize, ci, co), np.float32) * 0.05)
+        y_shape = jax.eval_shape(lambda a, b: layers._lax_conv(a, b, stride, pad, 1), x, k).shape
+        g = jnp.asarray(rng.standard_normal(y_shape, np.float32))
 
-        def loss(a, b, c, kind, s=stride):
-            if kind == "xla":
-                y = lax.conv_general_dilated(a, b, (s, s), [(1, 1)] * 2, dimension_numbers=layers._DN)
-            else:
-                y = layers._conv_dots_wgrad(a, b, s, 1)
-            return jnp.sum(y * c)
+        def loss(a, b, c, method, s=stride, p=pad):
+            if method == "xla_nchw":
+                y = lax.conv_general_dilated(a, b, (s, s), p, dimension_numbers=("NCHW", "OIHW", "NCHW"))
+                return jnp.sum(y * c)
+            with layers.weight_grad_method(method):
+                return jnp.sum(layers.conv_nhwc(a, b, s, p) * c)
 
-        fns = {kind: jax.jit(jax.grad(functools.partial(loss, kind=kind), argnums=(0, 1))) for kind in ("xla", "dots")}
-        timings = {kind: [] for kind in fns}
-        for _ in range(2):  # interleaved halves: both variants see the same machine state
-            for kind, fn in fns.items():
-                timings[kind].append(time_calls(lambda i, fn=fn: fn(x, k, g), repeats=max(1, args.repeats // 2),
-                                                warmup=max(1, args.warmup)))
-        ref, alt = fns["xla"](x, k, g), fns["dots"](x, k, g)
-        rel = float(jnp.abs(ref[1] - alt[1]).max() / jnp.abs(ref[1]).max())
+        # XLA may keep all kh*kw shifted copies alive at once: skip a method whose copies would not fit
+        # (shift_dy on the 7x7 stride-2 stem at batch 16: 49 copies of dy at the input size, 26 GB).
+        copies = {"shift_dy": ksize * ksize * n * h * w * co * 4,
+                  "shift_x": ksize * ksize * int(np.prod(y_shape[:3])) * ci * 4}
+        methods = [m for m in CONV_WEIGHT_GRADS if copies.get(m, 0) <= CONV_COPIES_MAX_BYTES]
+        nchw = (jnp.transpose(x, (0, 3, 1, 2)), jnp.transpose(k, (3, 2, 0, 1)), jnp.transpose(g, (0, 3, 1, 2)))
+        inputs = {m: nchw if m == "xla_nchw" else (x, k, g) for m in methods}
+        fns = {m: jax.jit(jax.grad(functools.partial(loss, method=m), argnums=(0, 1))) for m in methods}
+        timings = {m: [] for m in fns}
+        for _ in range(2):  # interleaved halves: every method sees the same machine state
+            for m, fn in fns.items():
+                timings[m].append(time_calls(lambda i, fn=fn, a=inputs[m]: fn(*a), repeats=max(1, args.repeats // 2),
+                                             warmup=max(1, args.warmup)))
+
+        def weight_grad(m):  # HWIO
+            dk = fns[m](*inputs[m])[1]
+            return jnp.transpose(dk, (2, 3, 1, 0)) if m == "xla_nchw" else dk
+
+        ref_dk = weight_grad("xla")
+        auto = layers.resolve_weight_grad(x.shape, k.shape, stride, "auto")
         base = None
-        for kind in ("xla", "dots"):
-            t = timings[kind]
+        for m in methods:
+            t = timings[m]
             times = t[0]["times_s"] + t[1]["times_s"]
-            flops = cost_flops(fns[kind].lower(x, k, g).compile().cost_analysis())
-            rec = dict(what="conv_backward", variant=f"{kind} {n}x{h}x{w} {ci}->{co} s{stride}", compile_s=None,
-                       median_s=round(statistics.median(times), 5), min_s=round(min(times), 5),
+            rel = float(jnp.abs(weight_grad(m) - ref_dk).max() / jnp.abs(ref_dk).max())
+            flops = cost_flops(fns[m].lower(*inputs[m]).compile().cost_analysis())
+            rec = dict(what="conv_backward", variant=f"{m} {n}x{h}x{w} {ci}->{co} k{ksize} s{stride}",
+                       compile_s=None, median_s=round(statistics.median(times), 5), min_s=round(min(times), 5),
                        max_s=round(max(times), 5), times_s=times, first_call_s=t[0]["first_call_s"],
                        traces_timed=t[0]["traces_timed"] + t[1]["traces_timed"],
                        compiles_timed=t[0]["compiles_timed"] + t[1]["compiles_timed"],
@@ -290,11 +317,11 @@ def measure_conv_backward(config, args) -> list[dict]:
                        flops_source="compiled cost_analysis", xla_temp_bytes=None,
                        rss_timed_peak_gib=t[1]["rss_timed_peak_gib"],
                        other_procs_cpu_frac=t[1]["other_procs_cpu_frac"], layer=[n, h, w, ci, co, stride],
-                       weight_grad=kind, dw_rel_diff_vs_xla=rel if kind == "dots" else 0.0)
-            if kind == "xla":
+                       kernel=ksize, padding=[list(q) for q in pad], weight_grad=m, auto_picks=auto,
+                       dw_rel_diff_vs_xla=rel)
+            if m == "xla":
                 base = rec["min_s"]
-            else:
-                rec["min_time_vs_xla"] = round(rec["min_s"] / base, 3) if base else None
+            rec["min_time_vs_xla"] = round(rec["min_s"] / base, 3) if base else None
             recs.append(rec)
     return recs
 

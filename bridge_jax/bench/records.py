@@ -13,7 +13,7 @@ import jaxlib
 
 from bridge_jax import files
 from bridge_jax.bench.device import device_memory_peak_bytes
-from bridge_jax.bench.timing import cpu_model, loadavg, peak_rss_gib
+from bridge_jax.bench.timing import cpu_isa, cpu_model, loadavg, peak_rss_gib
 
 REQUIRED_FIELDS = ("what", "variant", "config", "height", "width", "cycles", "dtype", "repeats", "warmup",
                    "compile_s", "median_s", "min_s", "max_s", "peak_rss_gib", "device_memory_peak_bytes", "flops",
@@ -29,7 +29,8 @@ def environment(run, args) -> dict:
                 cycles=run.global_batch, dtype=run.model.dtype, repeats=args.repeats, warmup=args.warmup,
                 device_kind=dev.device_kind, platform=dev.platform, num_devices=jax.device_count(),
                 jax_version=jax.__version__, jaxlib_version=jaxlib.__version__, python=platform.python_version(),
-                cpu_model=cpu_model(), cpu_count=os.cpu_count(),
+                cpu_model=cpu_model(), cpu_isa=cpu_isa(), cpu_count=os.cpu_count(),
+                xla_flags=os.environ.get("XLA_FLAGS", ""),
                 date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
 
 

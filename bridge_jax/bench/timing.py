@@ -137,6 +137,20 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def cpu_isa() -> str | None:
+    """The widest x86 vector ISA the CPU reports ("AVX-512", "AVX2" or "older"; None off Linux/x86): these
+    VMs come as both kinds, and XLA:CPU's convolutions (and so every ratio to PyTorch) differ between them."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "older"
+    except OSError:
+        pass
+    return None
+
+
 def loadavg() -> list[float] | None:
     try:
         return [round(x, 2) for x in os.getloadavg()]

@@ -46,6 +46,11 @@ def get_config(arg=None):
     # Rematerialisation in the gradient (network.REMAT_POLICIES): "none" | "conv_outputs" | "nothing". Same
     # gradients; on XLA:CPU neither saved memory (experiments/results/perf.md), on accelerators it can.
     c.remat = "none"
+    # How the convolutions compute their weight gradients (layers.WEIGHT_GRAD_METHODS): "auto" = on XLA:CPU one
+    # matmul per kernel tap where that is faster than XLA's own backward (>= 64 input channels) and XLA's in batch
+    # chunks for the 7x7 stem, XLA's elsewhere and on GPU/TPU; "xla" = always XLA's. Same gradients to float32
+    # rounding.
+    c.conv_weight_grad = "auto"
 
     # Loss: every field of losses.LossConfig, with its defaults (the paper's choices; each paper/upstream
     # difference is a switch there). Type 0 = no 2-warp term = the "flow+stereo" model.

@@ -5,12 +5,16 @@ weights behave the same). PyTorch pads *symmetrically* (`padding=k//2` on both s
 whereas `'SAME'` pads stride-2 convs asymmetrically; and PyTorch's default init differs from Flax's.
 
 Performance: on XLA:CPU a 1x1 convolution is written as a `jnp.dot` over the channel axis, whose weight gradient
-is several times faster than the equivalent `lax.conv`'s (experiments/results/model_bench.md).
+is several times faster than the equivalent `lax.conv`'s (experiments/results/model_bench.md); the wider 3x3 (and
+sub-pixel 2x2) convolutions get their weight gradient as one matmul per kernel tap for the same reason
+(`conv_nhwc`, `WEIGHT_GRAD_METHODS`, experiments/results/perf.md).
 
 Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2, 3, 1, 0)); biases `(out,)`.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
 
@@ -86,12 +90,8 @@ def conv2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, st
         y = jnp.dot(xs, kernel[0, 0])
     elif _use_im2col(x.shape, kernel.shape, stride, dilation):
         y = _conv_im2col(x, kernel, padding)
-    elif _use_dots_weight_grad(kernel.shape, dilation):
-        y = _conv_dots_wgrad(x, kernel, stride, padding)
     else:
-        y = lax.conv_general_dilated(
-            x, kernel, window_strides=(stride, stride), padding=[(padding, padding), (padding, padding)],
-            rhs_dilation=(dilation, dilation), dimension_numbers=_DN)
+        y = conv_nhwc(x, kernel, stride, ((padding, padding), (padding, padding)), dilation)
     if bias is not None:
         y = y + bias.astype(y.dtype)
     return y
@@ -125,42 +125,156 @@ def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
     return jnp.dot(cols, kernel.reshape(kh * kw * kernel.shape[2], kernel.shape[3]))
 
 
-DOTS_WEIGHT_GRAD_MIN_CHANNELS = 0
-"""3x3 convs with at least this many input channels get their weight gradient as 9 shifted dots
-(`_conv_dots_wgrad`); 0 = never (XLA's own conv backward; `bench --what conv_backward` compares the two,
-experiments/results/perf.md)."""
+# ##########################################################################################################
+# The weight gradient of a convolution
+# ##########################################################################################################
+
+WEIGHT_GRAD_METHODS = ("auto", "xla", "shift_dy", "shift_x", "xla_chunks")
+"""How a convolution's weight gradient dW[i, j] = sum_{n, o} x[n, s*o + d*(i, j) - p]^T dy[n, o] is computed:
+
+- "xla": XLA's own backward-filter convolution.
+- "shift_dy": one matmul per kernel tap (i, j) between the input x `(N, H, W, Cin)`, unchanged, and the output
+  gradient dy placed where that tap reads x (`lax.pad`: zero-filled shift, and for stride s zeros between the
+  rows and columns), contracting N, H and W. On XLA:CPU this runs 1.5-3x faster than XLA's backward-filter
+  convolution for this network's layers with >= 64 input channels (experiments/results/perf.md); it loses on
+  the full-resolution layers with 16-32 channels, where the shifted dy copies cost more than the matmuls gain.
+- "shift_x": one matmul per tap between the shifted input view and dy (the input is the side that is copied).
+- "xla_chunks": XLA's backward-filter convolution on chunks of `WEIGHT_GRAD_CHUNK` rows of the batch, summed
+  (XLA:CPU's is slower than linear in the batch on some layers).
+- "auto" (the default), on the CPU backend: "shift_dy" for stride-1 convolutions with at least
+  `SHIFT_DY_MIN_CHANNELS` input channels; "xla_chunks" for the large-kernel stem on the image pair (kernel
+  >= 5, at most `STEM_MAX_CHANNELS` input channels), whose backward-filter convolution takes 1.27 s for 16
+  pair-forwards at 512x256 in one piece and 0.43 s in chunks of 2; "xla" for everything else. On GPU/TPU
+  always "xla" (cuDNN's backward is fast).
+
+The forward pass and the input gradient are XLA's in every method; the gradients agree to float32 rounding.
+`Network(conv_weight_grad=...)` (config key `conv_weight_grad`) picks the method for a network's forward."""
+
+SHIFT_DY_MIN_CHANNELS = 64
+STEM_MAX_CHANNELS = 8
+WEIGHT_GRAD_CHUNK = 2
+
+_WEIGHT_GRAD = contextvars.ContextVar("bridge_jax_conv_weight_grad", default="auto")
 
 
-def _use_dots_weight_grad(k_shape, dilation) -> bool:
-    return (DOTS_WEIGHT_GRAD_MIN_CHANNELS > 0 and k_shape[0] == 3 and k_shape[1] == 3 and dilation == 1
-            and k_shape[2] >= DOTS_WEIGHT_GRAD_MIN_CHANNELS)
+@contextlib.contextmanager
+def weight_grad_method(method: str):
+    """Within this context (at trace time), convolutions compute their weight gradient by `method`, one of
+    `WEIGHT_GRAD_METHODS`."""
+    if method not in WEIGHT_GRAD_METHODS:
+        raise ValueError(f"conv_weight_grad must be one of {list(WEIGHT_GRAD_METHODS)}, got {method!r}")
+    token = _WEIGHT_GRAD.set(method)
+    try:
+        yield
+    finally:
+        _WEIGHT_GRAD.reset(token)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _conv_dots_wgrad(x, kernel, stride, padding):
-    """`lax.conv` (3x3, any stride) whose weight gradient is 9 matmuls over shifted input views:
-    dW[i, j] = sum_{n,h,w} xpad[n, i + s*h, j + s*w, :]^T dy[n, h, w, :]. XLA:CPU's own backward-filter conv
-    runs at 15-120 GFLOP/s on this network's layers; a dot of (Cin, N*H*W) x (N*H*W, Cout) runs near the
-    matmul peak when the channel counts are large."""
-    return lax.conv_general_dilated(x, kernel, (stride, stride), [(padding, padding)] * 2, dimension_numbers=_DN)
+def resolve_weight_grad(x_shape, k_shape, stride: int, method: str | None = None) -> str:
+    """The method ("xla", "shift_dy", "shift_x" or "xla_chunks") a convolution of these shapes uses under
+    `method` (default: the current `weight_grad_method` context's)."""
+    method = _WEIGHT_GRAD.get() if method is None else method
+    if method != "auto":
+        return method
+    if jax.default_backend() != "cpu":
+        return "xla"
+    if stride == 1 and x_shape[3] >= SHIFT_DY_MIN_CHANNELS:
+        return "shift_dy"
+    if min(k_shape[:2]) >= 5 and x_shape[3] <= STEM_MAX_CHANNELS and x_shape[0] > WEIGHT_GRAD_CHUNK:
+        return "xla_chunks"
+    return "xla"
 
 
-def _conv_dots_wgrad_fwd(x, kernel, stride, padding):
-    return _conv_dots_wgrad(x, kernel, stride, padding), (x, kernel)
+def _lax_conv(x, kernel, stride: int, padding, dilation: int):
+    return lax.conv_general_dilated(x, kernel, (stride, stride), [tuple(p) for p in padding],
+                                    rhs_dilation=(dilation, dilation), dimension_numbers=_DN)
 
 
-def _conv_dots_wgrad_bwd(stride, padding, res, dy):
+def conv_nhwc(x: jax.Array, kernel: jax.Array, stride: int = 1, padding=((0, 0), (0, 0)),
+              dilation: int = 1) -> jax.Array:
+    """`lax.conv_general_dilated` on NHWC / HWIO with padding `((top, bottom), (left, right))`, whose weight
+    gradient is computed by the method `resolve_weight_grad` picks (see `WEIGHT_GRAD_METHODS`)."""
+    padding = tuple((int(a), int(b)) for a, b in padding)
+    method = resolve_weight_grad(x.shape, kernel.shape, stride)
+    if method == "xla":
+        return _lax_conv(x, kernel, stride, padding, dilation)
+    return _conv_custom_wgrad(x, kernel, stride, padding, dilation, method)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
+def _conv_custom_wgrad(x, kernel, stride, padding, dilation, method):
+    return _lax_conv(x, kernel, stride, padding, dilation)
+
+
+def _conv_custom_wgrad_fwd(x, kernel, stride, padding, dilation, method):
+    return _lax_conv(x, kernel, stride, padding, dilation), (x, kernel)
+
+
+def _conv_custom_wgrad_bwd(stride, padding, dilation, method, res, dy):
     x, kernel = res
-    _, vjp_x = jax.vjp(lambda a: lax.conv_general_dilated(a, kernel, (stride, stride), [(padding, padding)] * 2,
-                                                          dimension_numbers=_DN), x)
+    _, vjp_x = jax.vjp(lambda a: _lax_conv(a, kernel, stride, padding, dilation), x)
     (dx,) = vjp_x(dy)
-    dy2 = dy.reshape(-1, dy.shape[-1])
-    taps = [jnp.dot(v.reshape(dy2.shape[0], -1).T, dy2) for v in _shifted_views(x, 3, 3, stride, padding)]
-    dk = jnp.stack(taps).reshape(kernel.shape).astype(kernel.dtype)
+    wgrad = {"shift_dy": weight_grad_shift_dy, "shift_x": weight_grad_shift_x,
+             "xla_chunks": weight_grad_xla_chunks}[method]
+    dk = wgrad(x, dy, kernel.shape, stride, padding, dilation).astype(kernel.dtype)
     return dx, dk
 
 
-_conv_dots_wgrad.defvjp(_conv_dots_wgrad_fwd, _conv_dots_wgrad_bwd)
+_conv_custom_wgrad.defvjp(_conv_custom_wgrad_fwd, _conv_custom_wgrad_bwd)
+
+_CONTRACT_NHW = (((0, 1, 2), (0, 1, 2)), ((), ()))
+
+
+def weight_grad_shift_dy(x, dy, k_shape, stride: int, padding, dilation: int = 1) -> jax.Array:
+    """dW `(kh, kw, Cin, Cout)` of a convolution from its input `x (N, H, W, Cin)` and output gradient
+    `dy (N, Ho, Wo, Cout)`, one matmul per tap with dy moved onto the input grid.
+
+    Tap (i, j) reads x at q = s*o + d*(i, j) - (top, left) for output pixel o, so dy padded by lo = d*i - top
+    (negative = cropped), s - 1 zeros between rows and hi = H - 1 - (s*(Ho - 1) + lo) is dy_ij with
+    dy_ij[q] = dy[o]; then dW[i, j] = sum_{n, q} x[n, q]^T dy_ij[n, q]."""
+    kh, kw = k_shape[:2]
+    (top, _), (left, _) = padding
+    h, w = x.shape[1:3]
+    ho, wo = dy.shape[1:3]
+    zero = jnp.zeros((), dy.dtype)
+    acc = jnp.promote_types(x.dtype, jnp.float32)  # bf16 inputs still sum in float32
+    taps = []
+    for i in range(kh):
+        for j in range(kw):
+            lo_h, lo_w = dilation * i - top, dilation * j - left
+            cfg = ((0, 0, 0), (lo_h, h - 1 - (stride * (ho - 1) + lo_h), stride - 1),
+                   (lo_w, w - 1 - (stride * (wo - 1) + lo_w), stride - 1), (0, 0, 0))
+            taps.append(lax.dot_general(x, lax.pad(dy, zero, cfg), _CONTRACT_NHW, preferred_element_type=acc))
+    return jnp.stack(taps).reshape(k_shape)
+
+
+def weight_grad_xla_chunks(x, dy, k_shape, stride: int, padding, dilation: int = 1) -> jax.Array:
+    """dW as XLA's backward-filter convolution on `WEIGHT_GRAD_CHUNK` rows of the batch at a time, summed."""
+    dk = None
+    for c in range(0, x.shape[0], WEIGHT_GRAD_CHUNK):
+        xc, dyc = x[c:c + WEIGHT_GRAD_CHUNK], dy[c:c + WEIGHT_GRAD_CHUNK]
+        transpose = jax.linear_transpose(lambda k, xc=xc: _lax_conv(xc, k, stride, padding, dilation),
+                                         jax.ShapeDtypeStruct(k_shape, x.dtype))
+        (part,) = transpose(dyc)
+        part = part.astype(jnp.promote_types(x.dtype, jnp.float32))
+        dk = part if dk is None else dk + part
+    return dk
+
+
+def weight_grad_shift_x(x, dy, k_shape, stride: int, padding, dilation: int = 1) -> jax.Array:
+    """dW as in `weight_grad_shift_dy`, but with the zero-padded input sliced to each tap's view
+    xpad[n, s*o + d*(i, j)] (the input is the side that is copied)."""
+    kh, kw = k_shape[:2]
+    ho, wo = dy.shape[1:3]
+    xp = jnp.pad(x, ((0, 0), padding[0], padding[1], (0, 0)))
+    acc = jnp.promote_types(x.dtype, jnp.float32)
+    taps = []
+    for i in range(kh):
+        for j in range(kw):
+            view = xp[:, dilation * i:dilation * i + stride * (ho - 1) + 1:stride,
+                      dilation * j:dilation * j + stride * (wo - 1) + 1:stride]
+            taps.append(lax.dot_general(view, dy, _CONTRACT_NHW, preferred_element_type=acc))
+    return jnp.stack(taps).reshape(k_shape)
 
 
 def conv_transpose2d(x: jax.Array, kernel: jax.Array, bias: jax.Array | None = None, *, stride: int = 2,
@@ -225,7 +339,7 @@ def upsample_nearest2x_conv3x3(x: jax.Array, kernel: jax.Array, bias: jax.Array 
             # phase a uses rows (i-1, i) for a=0 -> pad top 1; (i, i+1) for a=1 -> pad bottom 1.
             pad_h = (1, 0) if a == 0 else (0, 1)
             pad_w = (1, 0) if b == 0 else (0, 1)
-            y = lax.conv_general_dilated(x, k2[a, b], (1, 1), [pad_h, pad_w], dimension_numbers=_DN)
+            y = conv_nhwc(x, k2[a, b], 1, (pad_h, pad_w))
             row.append(y)
         outs.append(jnp.stack(row, axis=3))  # (N, H, W, 2[b], Cout)
     y = jnp.stack(outs, axis=2)  # (N, H, 2[a], W, 2[b], Cout)
