@@ -44,15 +44,6 @@ def test_remat_policies_change_no_gradient(model, size):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-6 * max(scale, 1.0))
 
 
-def test_remat_policy_names_are_checked():
-    c = default_config.get_config()
-    c.remat = "everything"
-    with pytest.raises(setup.ConfigError, match=r"config.remat must be one of \['conv_outputs', 'none', 'nothing'\]"):
-        setup.parse(c, devices=jax.devices()[:1], num_processes=1)
-    with pytest.raises(ValueError, match="remat must be one of"):
-        network.Network(None, remat="some")
-
-
 @pytest.mark.parametrize("model,size", [("resnet_md_tiny", (64, 128)),
                                         pytest.param("pwc_lite", (32, 64), marks=pytest.mark.slow)])
 def test_conv_weight_grad_methods_change_no_gradient(model, size):
@@ -69,10 +60,15 @@ def test_conv_weight_grad_methods_change_no_gradient(model, size):
         assert 0 < worst <= 2e-6 * scale, (method, worst, scale)  # > 0: the other formulation really ran
 
 
-def test_conv_weight_grad_names_are_checked():
+@pytest.mark.parametrize("key,bad,allowed", [
+    ("remat", "everything", r"\['conv_outputs', 'none', 'nothing'\]"),
+    ("conv_weight_grad", "fast", r"\['auto', 'xla', 'shift_dy', 'shift_x', 'xla_chunks'\]")])
+def test_option_names_are_checked(key, bad, allowed):
+    """A name outside the list is one config error naming the key and the allowed names, and `Network`
+    refuses it too."""
     c = default_config.get_config()
-    c.conv_weight_grad = "fast"
-    with pytest.raises(setup.ConfigError, match=r"config.conv_weight_grad must be one of \['auto', 'xla', "):
+    c[key] = bad
+    with pytest.raises(setup.ConfigError, match=rf"config.{key} must be one of {allowed}, got '{bad}'"):
         setup.parse(c, devices=jax.devices()[:1], num_processes=1)
-    with pytest.raises(ValueError, match="conv_weight_grad must be one of"):
-        network.Network(None, conv_weight_grad="fast")
+    with pytest.raises(ValueError, match=f"{key} must be one of"):
+        network.Network(None, **{key: bad})

@@ -108,20 +108,24 @@ def _use_im2col(x_shape, k_shape, stride, dilation) -> bool:
             and x_shape[3] >= IM2COL_MIN_CHANNELS)
 
 
-def _shifted_views(x: jax.Array, kh: int, kw: int, stride: int, padding: int) -> list[jax.Array]:
-    """The `kh * kw` views of the zero-padded `x (N, H, W, C)` that kernel tap (i, j) sees, row-major over taps,
-    each `(N, H_out, W_out, C)`: view[i * kw + j][n, h, w] = xpad[n, i + stride*h, j + stride*w]."""
+def _shifted_views(x: jax.Array, kh: int, kw: int, stride: int, padding, dilation: int = 1) -> list[jax.Array]:
+    """The `kh * kw` views of `x (N, H, W, C)`, zero-padded by `((top, bottom), (left, right))`, that kernel tap
+    (i, j) sees, row-major over taps, each `(N, H_out, W_out, C)`:
+    view[i * kw + j][n, h, w] = xpad[n, d*i + stride*h, d*j + stride*w]."""
     _, h, w, _ = x.shape
-    xp = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
-    ho, wo = (h + 2 * padding - kh) // stride + 1, (w + 2 * padding - kw) // stride + 1
-    return [xp[:, i:i + stride * (ho - 1) + 1:stride, j:j + stride * (wo - 1) + 1:stride]
+    (top, bottom), (left, right) = padding
+    xp = jnp.pad(x, ((0, 0), (top, bottom), (left, right), (0, 0)))
+    ho = (h + top + bottom - dilation * (kh - 1) - 1) // stride + 1
+    wo = (w + left + right - dilation * (kw - 1) - 1) // stride + 1
+    return [xp[:, dilation * i:dilation * i + stride * (ho - 1) + 1:stride,
+               dilation * j:dilation * j + stride * (wo - 1) + 1:stride]
             for i in range(kh) for j in range(kw)]
 
 
 def _conv_im2col(x: jax.Array, kernel: jax.Array, padding: int) -> jax.Array:
     """Stride-1 conv as `(N*H*W, k*k*Cin) @ (k*k*Cin, Cout)` (same result as `lax.conv`, HWIO kernel)."""
     kh, kw = kernel.shape[:2]
-    cols = jnp.concatenate(_shifted_views(x, kh, kw, 1, padding), axis=-1)
+    cols = jnp.concatenate(_shifted_views(x, kh, kw, 1, ((padding, padding), (padding, padding))), axis=-1)
     return jnp.dot(cols, kernel.reshape(kh * kw * kernel.shape[2], kernel.shape[3]))
 
 
@@ -264,16 +268,9 @@ def weight_grad_xla_chunks(x, dy, k_shape, stride: int, padding, dilation: int =
 def weight_grad_shift_x(x, dy, k_shape, stride: int, padding, dilation: int = 1) -> jax.Array:
     """dW as in `weight_grad_shift_dy`, but with the zero-padded input sliced to each tap's view
     xpad[n, s*o + d*(i, j)] (the input is the side that is copied)."""
-    kh, kw = k_shape[:2]
-    ho, wo = dy.shape[1:3]
-    xp = jnp.pad(x, ((0, 0), padding[0], padding[1], (0, 0)))
     acc = jnp.promote_types(x.dtype, jnp.float32)
-    taps = []
-    for i in range(kh):
-        for j in range(kw):
-            view = xp[:, dilation * i:dilation * i + stride * (ho - 1) + 1:stride,
-                      dilation * j:dilation * j + stride * (wo - 1) + 1:stride]
-            taps.append(lax.dot_general(view, dy, _CONTRACT_NHW, preferred_element_type=acc))
+    taps = [lax.dot_general(view, dy, _CONTRACT_NHW, preferred_element_type=acc)
+            for view in _shifted_views(x, k_shape[0], k_shape[1], stride, padding, dilation)]
     return jnp.stack(taps).reshape(k_shape)
 
 
