@@ -21,12 +21,18 @@ def np_conv(x, k, b=None, stride=1, pad=None, dilation=1):
     ho = (hp - dilation * (kh - 1) - 1) // stride + 1
     wo = (wp - dilation * (k.shape[1] - 1) - 1) // stride + 1
     out = np.zeros((n, ho, wo, k.shape[3]))
-    for i in range(kh):
-        for j in range(k.shape[1]):
-            patch = xp[:, i * dilation:i * dilation + stride * (ho - 1) + 1:stride,
-                       j * dilation:j * dilation + stride * (wo - 1) + 1:stride]
-            out += patch @ k[i, j]
+    for i, j, patch in np_tap_views(xp, k.shape[:2], (ho, wo), stride, dilation):
+        out += patch @ k[i, j]
     return out + (0 if b is None else b)
+
+
+def np_tap_views(xp, kernel_hw, out_hw, stride, dilation):
+    """(i, j, view) for each kernel tap of the padded input xp (N, Hp, Wp, C): view[n, o] = xp[n, s*o + d*(i, j)]."""
+    (ho, wo) = out_hw
+    for i in range(kernel_hw[0]):
+        for j in range(kernel_hw[1]):
+            yield i, j, xp[:, i * dilation:i * dilation + stride * (ho - 1) + 1:stride,
+                           j * dilation:j * dilation + stride * (wo - 1) + 1:stride]
 
 
 def np_elu(x):
@@ -404,13 +410,9 @@ def test_head_init_rejects_unknown_value():
 def np_weight_grad(x, g, k_shape, stride, pad, dilation):
     """dW[i, j] = sum_{n, o} xpad[n, s*o + d*(i, j)]^T g[n, o], float64, padding ((top, bottom), (left, right))."""
     xp = np.pad(x, ((0, 0), pad[0], pad[1], (0, 0)))
-    ho, wo = g.shape[1:3]
     dk = np.zeros(k_shape)
-    for i in range(k_shape[0]):
-        for j in range(k_shape[1]):
-            patch = xp[:, i * dilation:i * dilation + stride * (ho - 1) + 1:stride,
-                       j * dilation:j * dilation + stride * (wo - 1) + 1:stride]
-            dk[i, j] = np.einsum("nhwc,nhwo->co", patch, g)
+    for i, j, patch in np_tap_views(xp, k_shape[:2], g.shape[1:3], stride, dilation):
+        dk[i, j] = np.einsum("nhwc,nhwo->co", patch, g)
     return dk
 
 

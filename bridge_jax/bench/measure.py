@@ -300,13 +300,14 @@ def measure_conv_backward(config, args) -> list[dict]:
             dk = fns[m](*inputs[m])[1]
             return jnp.transpose(dk, (2, 3, 1, 0)) if m == "xla_nchw" else dk
 
-        ref_dk = weight_grad("xla")
+        dks = {m: weight_grad(m) for m in methods}
+        ref_dk = dks["xla"]
         auto = layers.resolve_weight_grad(x.shape, k.shape, stride, "auto")
         base = None
         for m in methods:
             t = timings[m]
             times = t[0]["times_s"] + t[1]["times_s"]
-            rel = float(jnp.abs(weight_grad(m) - ref_dk).max() / jnp.abs(ref_dk).max())
+            rel = float(jnp.abs(dks[m] - ref_dk).max() / jnp.abs(ref_dk).max())
             flops = cost_flops(fns[m].lower(*inputs[m]).compile().cost_analysis())
             rec = dict(what="conv_backward", variant=f"{m} {n}x{h}x{w} {ci}->{co} k{ksize} s{stride}",
                        compile_s=None, median_s=round(statistics.median(times), 5), min_s=round(min(times), 5),
