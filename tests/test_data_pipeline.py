@@ -266,3 +266,34 @@ def test_shard_batch_onto_mesh():
     out = pipeline.shard_batch(batch, mesh)
     assert out["cycle"].shape == (n, 4, 4, 6, 3)
     assert len(out["cycle"].sharding.device_set) == n
+
+
+def test_zoom_crop_keeps_stereo_rectified_and_scales_disparity():
+    """A stereo pair with a constant disparity of 4 px (right = left shifted): after the zoom crop (same window
+    in every frame) and the resize back to the working size, rows stay aligned and the disparity is 4 / s."""
+    h, w = 64, 128
+    base = np.random.default_rng(0).integers(0, 256, (h, w + 8), dtype=np.uint8)
+    import cv2
+    base = cv2.GaussianBlur(base, (0, 0), 2.0)
+    left, right = base[:, 4:4 + w], base[:, 8:8 + w]  # right(x - 4) = base(x + 4) = left(x): disparity 4
+    cycle = np.stack([np.repeat(f[..., None], 3, -1) for f in (left, right, left, right)])
+    assert pipeline.zoom_crop(cycle, np.random.default_rng(1), 1.0) is cycle
+    crop = pipeline.zoom_crop(cycle, np.random.default_rng(1), 0.5)
+    r = np.random.default_rng(1)
+    s = r.uniform(0.5, 1.0)
+    ch, cw = int(round(s * h)), int(round(s * w))
+    assert crop.shape == (4, ch, cw, 3)
+    np.testing.assert_array_equal(crop[0], crop[2])  # the same window in every frame
+    back = pipeline.resize_frames(crop, h, w)[..., 0].astype(np.float64)
+    xs = np.arange(w, dtype=np.float64)
+    # the disparity d that best aligns the resized frames: right sampled at x - d against left at x
+    cands = np.arange(2.0, 16.0, 0.05)
+    errs = [np.abs(back[0][:, 20:-20] - np.stack([np.interp(xs, xs + d, row) for row in back[1]])[:, 20:-20]
+                   ).mean() for d in cands]
+    best = cands[int(np.argmin(errs))]
+    assert abs(best - 4.0 * w / cw) < 0.2, (best, 4.0 * w / cw)
+
+
+def test_zoom_option_is_checked():
+    with pytest.raises(ValueError, match="data.augment_zoom"):
+        pipeline.DataConfig(augment_zoom=0.0)

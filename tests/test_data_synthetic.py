@@ -131,3 +131,126 @@ def test_cli_writes_kitti_layout_and_refuses_to_overwrite(tmp_path):
     r2 = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert r2.returncode != 0 and "exists" in r2.stderr and "Traceback" not in r2.stderr
     assert not [p for p in os.listdir(tmp_path) if ".tmp-" in p]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Scene variations (photo textures, uniform regions, slants, spins, rigs, camera response)
+# ----------------------------------------------------------------------------------------------------------
+
+def _no_photometric(name, **kw):
+    import dataclasses
+    return dataclasses.replace(synthetic.SCENE_PRESETS[name], photometric=0.0, **kw)
+
+
+@pytest.mark.parametrize("scene", [
+    _no_photometric("real"),
+    _no_photometric("heldout"),
+    synthetic.SceneConfig(moving_prob=1.0, spin_prob=1.0, max_spin=0.3, slant_prob=1.0),  # every object turns
+    synthetic.SceneConfig(photo_texture_prob=1.0),
+])
+def test_scene_variations_keep_the_ground_truth_exact(scene):
+    """Photo textures, slanted and rotating objects and varied rigs change the images and the GT together:
+    warping with the GT still reconstructs (same bounds as the demo scenes), and a 1 px error is seen."""
+    xs, ys = _grid()
+    for seed in (21, 22):
+        s = synthetic.render_sample(seed, H, W, scene=scene)
+        c = s["cycle"]
+        good = _err(c[0], bilinear(c[1], xs - s["disp_t"], ys), s["noc_disp_t"])
+        off = _err(c[0], bilinear(c[1], xs - s["disp_t"] - 1.0, ys), s["noc_disp_t"])
+        assert good.mean() < 0.006 and off.mean() > 3 * good.mean(), (good.mean(), off.mean())
+        # Flow: larger motions (forward motion, zoom) make a few pixels' bilinear/mip sampling differ more
+        # between the frames, so the bound is on the median pixel; a 1 px error moves the median pixel a lot.
+        fl, noc = s["flow"], s["noc_flow"]
+        good = _err(c[0], bilinear(c[2], xs + fl[..., 0], ys + fl[..., 1]), noc)
+        off = _err(c[0], bilinear(c[2], xs + fl[..., 0] + 1.0, ys + fl[..., 1]), noc)
+        assert np.median(good) < 0.004 and good.mean() < 0.012, (np.median(good), good.mean())
+        assert np.median(off) > 2 * np.median(good), (np.median(good), np.median(off))
+
+
+def test_rotating_object_flow_is_not_a_translation():
+    """A spinning object's flow varies across it (a pure translation would not), and still reconstructs."""
+    scene = synthetic.SceneConfig(min_objects=1, max_objects=1, moving_prob=1.0, spin_prob=1.0, max_spin=0.3,
+                                  facade_prob=0.0)
+    spread = []
+    for seed in range(30, 36):
+        s = synthetic.render_sample(seed, H, W, scene=scene)
+        depth = s["depth_t"]
+        obj = np.isfinite(depth) & (depth < 35.0) & s["noc_flow"]
+        if obj.sum() > 200:
+            spread.append(np.std(s["flow"][obj], axis=0).max())
+    assert spread and max(spread) > 0.5
+
+
+def test_photometric_differences_touch_the_images_only():
+    """The camera response changes each view differently, never the ground truth: the GT arrays equal those
+    rendered without it, and warping with them reconstructs up to the added gain/offset/gamma/noise."""
+    xs, ys = _grid()
+    with_p = synthetic.render_sample(41, H, W, scene="real")
+    without = synthetic.render_sample(41, H, W, scene=_no_photometric("real"))
+    for k in with_p:
+        if k != "cycle":
+            np.testing.assert_array_equal(with_p[k], without[k])
+    assert not np.array_equal(with_p["cycle"], without["cycle"])
+    # the four views differ photometrically (not only by noise): mean colours move apart
+    diffs = [np.abs(with_p["cycle"][v].astype(float).mean((0, 1)) - without["cycle"][v].astype(float).mean((0, 1)))
+             for v in range(4)]
+    assert max(d.max() for d in diffs) > 2.0
+    c = with_p["cycle"]
+    err = _err(c[0], bilinear(c[1], xs - with_p["disp_t"], ys), with_p["noc_disp_t"]).mean()
+    assert 0.006 < err < 0.12  # worse than exact (the response differs) but still a reconstruction
+
+
+def test_camera_response_hand_case():
+    """Strength 0 is the identity; otherwise gain, offset and gamma follow the drawn values (no blur, no noise
+    drawn by a generator whose draws we replay)."""
+    img = np.full((4, 5, 3), 0.5, np.float32)
+    assert synthetic.camera_response(img, np.random.default_rng(0), 0.0) is img
+    rng = np.random.default_rng(3)
+    out = synthetic.camera_response(img, rng, 1.0)
+    r = np.random.default_rng(3)
+    gain, offset = 1 + r.uniform(-0.12, 0.12, 3), r.uniform(-0.04, 0.04, 3)
+    gamma = 1 + r.uniform(-0.15, 0.15)
+    blur, _, noise = r.uniform() < 0.5, r.uniform(0.2, 0.7), r.uniform(0.0, 0.015)
+    expect = np.clip(0.5 * gain + offset, 0, 1) ** gamma
+    # a uniform image is unchanged by blur; the noise is at most a few std
+    assert np.abs(out.mean((0, 1)) - expect).max() < 4 * noise / np.sqrt(20) + 1e-6
+
+
+def test_default_scene_is_unchanged_by_the_new_switches():
+    """The default (demo) scenes draw nothing from the variations' generator: a known pixel and GT value of
+    sample 5 stay what they were before the switches existed."""
+    a = synthetic.render_sample(5, 32, 64)
+    b = synthetic.render_sample(5, 32, 64, scene="demo")
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    assert a["focal"] == pytest.approx(721.5377 * 64 / 1242) and a["baseline"] == 0.54
+
+
+def test_rig_ranges_and_textureless_layers():
+    s = synthetic.render_sample(8, H, W, scene=synthetic.SceneConfig(focal_range=(2.0, 2.0),
+                                                                     baseline_range=(0.5, 0.5)))
+    assert s["focal"] == pytest.approx(2 * 721.5377 * W / 1242) and s["baseline"] == pytest.approx(0.27)
+    flat = synthetic.render_sample(8, H, W, scene=synthetic.SceneConfig(textureless_prob=1.0))
+    textured = synthetic.render_sample(8, H, W)
+    grad = [np.abs(np.diff(x["cycle"][0].astype(float).mean(-1), axis=1)).mean() for x in (flat, textured)]
+    assert grad[0] < 0.3 * grad[1]
+
+
+def test_scene_presets_and_bad_values():
+    with pytest.raises(ValueError, match="synthetic scene must be one of"):
+        synthetic.render_sample(1, 32, 64, scene="nope")
+    with pytest.raises(ValueError, match="slant_prob"):
+        synthetic.SceneConfig(slant_prob=1.5)
+    with pytest.raises(ValueError, match="focal_range"):
+        synthetic.SceneConfig(focal_range=(2.0, 1.0))
+    from bridge_jax.data import pipeline
+    with pytest.raises(ValueError, match="data.synthetic_scene"):
+        pipeline.DataConfig(synthetic_scene="nope")
+
+
+def test_photo_sets_are_disjoint():
+    from bridge_jax.data import photos
+    assert not set(photos.TRAIN_PHOTOS) & set(photos.HELDOUT_PHOTOS)
+    crops = photos.photo_textures("heldout")
+    assert crops and all(c.shape == (photos.TEXTURE_SIZE, photos.TEXTURE_SIZE, 3) and c.dtype == np.uint8
+                         for c in crops)

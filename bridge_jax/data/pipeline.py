@@ -230,6 +230,10 @@ class DataConfig:
     data_dir: the folder of kitti_raw | folder | tfds.
     split: kitti_raw: "all" | "kitti" | "eigen" | a list file; tfds: the builder config ("all").
     augment: the paper's augmentation (see the module docstring).
+    augment_zoom: geometric augmentation beyond the paper: with `augment`, each cycle is cropped to a random
+      window of s x its size, s ~ U(augment_zoom, 1), the same window in all four frames (rows stay rectified),
+      before the resize to the working size: motions and disparities grow by 1/s, as with a longer lens.
+      1.0 = off (the paper).
     num_workers: grain worker processes (0 = decode in the training process).
     prefetch, read_threads, worker_buffer_size: grain read options.
     max_skip: consecutive unreadable cycles tolerated before the data folder is reported as broken.
@@ -239,6 +243,10 @@ class DataConfig:
     val_dir: held-out frames of your own for training's validation, in the layouts of `folders.LAYOUT_HELP`
       (`bridge_jax.eval.photometric`: photometric error without ground truth); "" = the synthetic validation.
     synthetic_num: cycles of the synthetic source per epoch (it is endless; this fixes the shuffle period).
+    synthetic_scene: the synthetic source's scene settings, a name of `synthetic.SCENE_PRESETS`: "demo" (the
+      demo's procedural look), "real" (photo textures, uniform regions, slanted and rotating objects, varied
+      rigs, larger motions, per-camera photometric differences: a domain that carries over to real images) or
+      "heldout" (settings kept for checking generalisation; do not train on it).
     num_epochs: passes over the source (None = forever, the trainer's choice).
     """
 
@@ -246,12 +254,14 @@ class DataConfig:
     data_dir: str = ""
     split: str = ""
     augment: bool = True
+    augment_zoom: float = 1.0
     num_workers: int = 0
     prefetch: int = 2
     read_threads: int = 1
     worker_buffer_size: int = 2
     max_skip: int = 100
     synthetic_num: int = DEFAULT_SYNTHETIC_NUM
+    synthetic_scene: str = "demo"
     num_epochs: Optional[int] = None
     prescan: bool = True
     val_dir: str = ""
@@ -261,6 +271,11 @@ class DataConfig:
             raise ValueError(f"data.source must be one of {SOURCES}, got {self.source!r}")
         if self.source != "synthetic" and not self.data_dir:
             raise ValueError(f"data.source={self.source!r} needs data.data_dir")
+        if not 0.1 <= float(self.augment_zoom) <= 1.0:
+            raise ValueError(f"data.augment_zoom must be in [0.1, 1] (1 = off), got {self.augment_zoom!r}")
+        if self.synthetic_scene not in synthetic.SCENE_PRESETS:
+            raise ValueError(f"data.synthetic_scene must be one of {tuple(synthetic.SCENE_PRESETS)}, got "
+                             f"{self.synthetic_scene!r}")
         if not isinstance(self.val_dir, str):
             raise ValueError(f"data.val_dir must be a folder or '' (synthetic validation), got {self.val_dir!r}")
 
@@ -268,7 +283,8 @@ class DataConfig:
 def make_source(data: DataConfig, *, height: int = 256, width: int = 512, seed: int = 0):
     """The cycle source named by `data.source` (len + load(i) -> {"cycle": uint8 (4, H, W, 3), "id"})."""
     if data.source == "synthetic":
-        return SyntheticSource(int(data.synthetic_num), int(seed), int(height), int(width))
+        return SyntheticSource(int(data.synthetic_num), int(seed), int(height), int(width),
+                               scene=data.synthetic_scene)
     if data.source in ("kitti_raw", "folder"):
         if data.source == "kitti_raw":
             records = kitti.raw_cycles(data.data_dir, data.split or "all")
@@ -408,14 +424,27 @@ def resize_frames(frames: np.ndarray, height: int, width: int) -> np.ndarray:
                      for f in frames])
 
 
+def zoom_crop(cycle: np.ndarray, rng: np.random.Generator, min_scale: float) -> np.ndarray:
+    """The same random window of s x the size, s ~ U(min_scale, 1), cut from all frames of `cycle`
+    `(4, H, W, C)` (at least 8 x 8 pixels); drawn after the paper's ops, so those draws are unchanged."""
+    if min_scale >= 1.0:
+        return cycle
+    _, h, w, _ = cycle.shape
+    s = rng.uniform(min_scale, 1.0)
+    ch, cw = max(8, int(round(s * h))), max(8, int(round(s * w)))
+    y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    return cycle[:, y0:y0 + ch, x0:x0 + cw]
+
+
 class _Augment(grain.transforms.RandomMap):
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
+    def __init__(self, enabled: bool, zoom: float = 1.0):
+        self.enabled, self.zoom = enabled, float(zoom)
 
     def random_map(self, element: dict, rng: np.random.Generator) -> dict:
         if not self.enabled:
             return element
-        return {**element, "cycle": apply_augment_uint8(element["cycle"], draw_augment(rng))}
+        cycle = apply_augment_uint8(element["cycle"], draw_augment(rng))
+        return {**element, "cycle": zoom_crop(cycle, rng, self.zoom)}
 
 
 class _Resize(grain.transforms.Map):
@@ -474,7 +503,7 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
     ds = ds[process_index::process_count]
     ds = ds.repeat(None if data.num_epochs is None else int(data.num_epochs))
     ds = ds.map(LoadCycle(src, int(data.max_skip)))
-    ds = ds.random_map(_Augment(bool(data.augment)), seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
+    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom)), seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
     ds = ds.map(_Resize(height, width))
     ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(data.read_threads) or 1,
                                               prefetch_buffer_size=int(data.prefetch)))

@@ -73,6 +73,59 @@ class SceneConfig:
     min_object_depth: float = 4.0
     max_object_depth: float = 35.0
     noise_std: float = 0.0             # optional per-view sensor noise (on [0,1] values); 0 keeps GT exact
+    # Beyond the demo's look (all off by default, so the default samples stay what they were). Their draws come
+    # from a second generator seeded by the sample seed, never from the scene's own.
+    photo_texture_prob: float = 0.0    # share of layers textured with a real photo crop (`photos.photo_textures`)
+    photo_set: str = "train"           # which photos: "train" | "heldout" (kept out of training)
+    textureless_prob: float = 0.0      # share of layers that are nearly uniform (sky, painted walls)
+    slant_prob: float = 0.0            # share of objects turned up to ±60° about the vertical, ±30° about x
+    spin_prob: float = 0.0             # share of moving objects that also rotate between t and t+1
+    max_spin: float = 0.15             # radians per frame of a rotating object, about a random axis
+    focal_range: tuple = (1.0, 1.0)    # focal length drawn per sample, as multiples of the default focal
+    baseline_range: tuple = (1.0, 1.0)  # baseline drawn per sample, as multiples of the baseline argument
+    cam_height_range: tuple = (1.5, 1.8)  # camera height above the ground (metres)
+    photometric: float = 0.0           # strength of per-view gain/offset/gamma/blur/noise (`camera_response`)
+
+    def __post_init__(self):
+        for name in ("photo_texture_prob", "textureless_prob", "slant_prob", "spin_prob"):
+            if not 0.0 <= float(getattr(self, name)) <= 1.0:
+                raise ValueError(f"scene {name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.photo_texture_prob + self.textureless_prob > 1.0:
+            raise ValueError("scene photo_texture_prob + textureless_prob must be <= 1")
+        if self.photo_set not in ("train", "heldout"):
+            raise ValueError(f"scene photo_set must be 'train' or 'heldout', got {self.photo_set!r}")
+        for name in ("focal_range", "baseline_range", "cam_height_range"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"scene {name} must be (low, high) with 0 < low <= high, got {getattr(self, name)!r}")
+        if self.photometric < 0 or self.max_spin < 0:
+            raise ValueError("scene photometric and max_spin must be >= 0")
+
+
+SCENE_PRESETS = {
+    # The demo's scenes: procedural textures, fronto-parallel objects, one rig, identical cameras.
+    "demo": SceneConfig(),
+    # A training domain that generalises to real images: photo and procedural textures, uniform regions,
+    # slanted and rotating objects, varied rigs, larger motions, and cameras that differ photometrically.
+    "real": SceneConfig(max_object_speed=2.0, max_ego_forward=2.0, max_ego_lateral=0.2, max_ego_yaw=0.05,
+                        photo_texture_prob=0.5, textureless_prob=0.1, slant_prob=0.5, spin_prob=0.3,
+                        focal_range=(0.6, 1.6), baseline_range=(0.5, 1.6), cam_height_range=(1.0, 2.5),
+                        photometric=1.0),
+    # Held-out settings for checking generalisation: held-out photos only, stronger photometric differences,
+    # a rig none of the presets above draws (longer focal, shorter baseline), more objects.
+    "heldout": SceneConfig(min_objects=5, max_objects=10, max_object_speed=1.6, max_ego_forward=1.8,
+                           photo_texture_prob=0.8, photo_set="heldout", textureless_prob=0.05, slant_prob=0.7,
+                           spin_prob=0.5, focal_range=(1.7, 2.0), baseline_range=(0.3, 0.45),
+                           cam_height_range=(1.2, 2.0), photometric=1.2),
+}
+"""Named scene settings (`data.synthetic_scene` of a training config; `--scene` of the CLI)."""
+
+
+def scene_config(name: str) -> SceneConfig:
+    """`SCENE_PRESETS[name]`; ValueError naming the allowed names."""
+    if name not in SCENE_PRESETS:
+        raise ValueError(f"synthetic scene must be one of {tuple(SCENE_PRESETS)}, got {name!r}")
+    return SCENE_PRESETS[name]
 
 
 @dataclasses.dataclass
@@ -89,6 +142,17 @@ class _Layer:
     texture: int                # index into the texture pool
     tint: np.ndarray            # (3, 3) colour matrix applied to the texture's RGB (uint8 scale -> [0, 1])
     offset: np.ndarray          # (2,) texel offset of the layer origin in the texture
+    spin: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))  # (3,3) rotation t -> t+1 about origin
+    is_object: bool = False     # one of the scene's objects (not the ground, the wall or a facade)
+
+
+def _layer_pose(layer: _Layer, time: int):
+    """(origin, normal, u_axis, v_axis) of the layer at `time` (0 or 1): moved by its velocity and turned by
+    its spin about its origin, so a material point keeps its in-plane (u, v)."""
+    if time == 0:
+        return layer.origin, layer.normal, layer.u_axis, layer.v_axis
+    r = layer.spin
+    return layer.origin + layer.velocity, r @ layer.normal, r @ layer.u_axis, r @ layer.v_axis
 
 
 @dataclasses.dataclass
@@ -196,6 +260,37 @@ def pool_texture(index: int) -> tuple:
     return tuple(np.clip(np.rint(p * 255.0), 0, 255).astype(np.uint8) for p in pyr)
 
 
+def make_flat_texture(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A nearly uniform RGB texture (sky, painted wall): one colour, a gentle linear gradient and faint noise
+    (1 % of the range), float32 (height, width, 3) in [0, 1]. The photometric loss cannot match such a region;
+    only smoothness and the surroundings can."""
+    base = _random_colour(rng)
+    gy, gx = np.meshgrid(np.linspace(-0.5, 0.5, height, dtype=np.float32),
+                         np.linspace(-0.5, 0.5, width, dtype=np.float32), indexing="ij")
+    slope = rng.uniform(-0.15, 0.15, 2).astype(np.float32)
+    tex = base + (slope[0] * gy + slope[1] * gx)[..., None]
+    tex += 0.01 * _noise_field(rng, height, width, 1, 0.5)
+    return np.clip(tex, 0.0, 1.0).astype(np.float32)
+
+
+FLAT_POOL_SIZE = 8
+
+
+@functools.lru_cache(maxsize=None)
+def texture_pyramid(key) -> tuple:
+    """Mip pyramid (tuple of uint8 (h, w, 3), finest first) of a layer's texture: `key` is an int (the pool of
+    procedural textures, `pool_texture`), ("photo", set, i) (crop i of `photos.photo_textures(set)`) or
+    ("flat", i) (nearly uniform texture i)."""
+    if isinstance(key, (int, np.integer)):
+        return pool_texture(int(key))
+    if key[0] == "photo":
+        from bridge_jax.data import photos  # scikit-image is loaded only when a scene asks for photos
+        return _pyramid(photos.photo_textures(key[1])[key[2]], _MIP_LEVELS)
+    rng = np.random.default_rng([0xF1A7, int(key[1])])
+    flat = make_flat_texture(rng, TEXTURE_SIZE, TEXTURE_SIZE)
+    return tuple(np.clip(np.rint(p * 255.0), 0, 255).astype(np.uint8) for p in _pyramid(flat, _MIP_LEVELS))
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Scene
 # ----------------------------------------------------------------------------------------------------------
@@ -209,7 +304,8 @@ def _make_scene(rng: np.random.Generator, height: int, width: int, focal: float,
     """Random layers and camera motion. Returns (layers, ego, (cx, cy)); ego = (R_cw, centre) at t+1."""
     f = focal
     cx, cy = (width - 1) / 2.0, 0.46 * height
-    cam_h = rng.uniform(1.5, 1.8)
+    lo, hi = cfg.cam_height_range
+    cam_h = lo + (hi - lo) * rng.uniform()  # = rng.uniform(lo, hi), the same draw
     layers: list[_Layer] = []
     ex, ey, ez = np.eye(3)
     zero = np.zeros(3)
@@ -257,10 +353,68 @@ def _make_scene(rng: np.random.Generator, height: int, width: int, focal: float,
             vel = np.array([vx, 0.0, vz])
         shape = _RECT if rng.uniform() < 0.6 else _ELLIPSE
         add(ez, [x, y, z], ex, ey, w_obj / 2, h_obj / 2, shape, vel, max(0.01, z / f * rng.uniform(0.7, 1.5)))
+        layers[-1].is_object = True
     yaw = rng.uniform(-cfg.max_ego_yaw, cfg.max_ego_yaw)
     lateral = rng.uniform(-cfg.max_ego_lateral, cfg.max_ego_lateral)
     ego = (_rot_y(yaw), np.array([lateral, 0.0, ego_fwd]))
     return layers, ego, (cx, cy)
+
+
+def _rot_x(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], np.float64)
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix of `angle` radians about the unit vector `axis` (Rodrigues)."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], np.float64)
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def _vary_scene(layers: list, extra: np.random.Generator, cfg: SceneConfig) -> None:
+    """Applies the scene's photo/uniform textures, slants and spins to `layers` in place (draws from `extra`)."""
+    n_photos = None
+    for layer in layers:
+        u = extra.uniform()
+        if u < cfg.photo_texture_prob:
+            if n_photos is None:
+                from bridge_jax.data import photos
+                n_photos = len(photos.photo_textures(cfg.photo_set))
+            layer.texture = ("photo", cfg.photo_set, int(extra.integers(n_photos)))
+            # photos keep their own colours: only a mild per-channel gain
+            layer.tint = (np.diag(extra.uniform(0.8, 1.2, 3)) / 255.0).astype(np.float32)
+        elif u < cfg.photo_texture_prob + cfg.textureless_prob:
+            layer.texture = ("flat", int(extra.integers(FLAT_POOL_SIZE)))
+            layer.tint = (np.eye(3) * extra.uniform(0.8, 1.2) / 255.0).astype(np.float32)
+        if not layer.is_object:
+            continue
+        if extra.uniform() < cfg.slant_prob:
+            turn = _rot_y(extra.uniform(-1.05, 1.05)) @ _rot_x(extra.uniform(-0.52, 0.52))
+            layer.normal, layer.u_axis, layer.v_axis = turn @ layer.normal, turn @ layer.u_axis, turn @ layer.v_axis
+        if np.any(layer.velocity) and extra.uniform() < cfg.spin_prob:
+            axis = extra.standard_normal(3)
+            layer.spin = _axis_angle(axis / np.linalg.norm(axis), extra.uniform(-cfg.max_spin, cfg.max_spin))
+
+
+def camera_response(img: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
+    """One camera's photometric rendering of a float RGB image `(H, W, 3)` in [0, 1] (any range in, clipped
+    out): per-channel gain (±12 %·s) and offset (±4 %·s), a gamma (±15 %·s), with probability 1/2 a slight
+    Gaussian blur (sigma up to 0.7·s px), and sensor noise (std up to 1.5 %·s). `s` = `strength`; 0 returns
+    the image unchanged. Applied to each of the four views with its own draw, so left/right and t/t+1 differ
+    as the cameras of a real rig do; the ground truth never sees it."""
+    if strength <= 0:
+        return img
+    gain = 1.0 + strength * rng.uniform(-0.12, 0.12, 3)
+    offset = strength * rng.uniform(-0.04, 0.04, 3)
+    gamma = 1.0 + strength * rng.uniform(-0.15, 0.15)
+    blur = rng.uniform() < 0.5
+    sigma = strength * rng.uniform(0.2, 0.7)
+    noise = strength * rng.uniform(0.0, 0.015)
+    out = np.clip(img * gain.astype(np.float32) + offset.astype(np.float32), 0.0, 1.0) ** np.float32(gamma)
+    if blur:
+        out = cv2.GaussianBlur(out, (0, 0), sigma)
+    out = out + rng.normal(0.0, noise, out.shape).astype(np.float32)
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 def _cameras(f, cx, cy, baseline, ego):
@@ -282,11 +436,11 @@ def _cameras(f, cx, cy, baseline, ego):
 # the in-plane coords of the hit are u = u_axis·(C - O) + t (R u_axis)·r_c, likewise v.
 
 def _layer_terms(layer: _Layer, cam: _Camera, time: int):
-    origin = layer.origin + time * layer.velocity
+    origin, normal, u_axis, v_axis = _layer_pose(layer, time)
     rel = cam.centre - origin
-    return (float(layer.normal @ (origin - cam.centre)), (cam.rot @ layer.normal).astype(np.float32),
-            (cam.rot @ layer.u_axis).astype(np.float32), (cam.rot @ layer.v_axis).astype(np.float32),
-            np.float32(layer.u_axis @ rel), np.float32(layer.v_axis @ rel))
+    return (float(normal @ (origin - cam.centre)), (cam.rot @ normal).astype(np.float32),
+            (cam.rot @ u_axis).astype(np.float32), (cam.rot @ v_axis).astype(np.float32),
+            np.float32(u_axis @ rel), np.float32(v_axis @ rel))
 
 
 def _dot(r, a, b):
@@ -313,12 +467,11 @@ def _bbox(layer: _Layer, cam: _Camera, time: int, height: int, width: int):
     """Pixel box (y0, y1, x0, x1) covering a bounded layer, or None (unbounded / crosses the camera plane)."""
     if layer.shape == _PLANE:
         return None
-    origin = layer.origin + time * layer.velocity
+    origin, _, u_axis, v_axis = _layer_pose(layer, time)
     corners = []
     for su in (-1, 1):
         for sv in (-1, 1):
-            p = cam.rot @ (origin + su * layer.half_u * layer.u_axis + sv * layer.half_v * layer.v_axis
-                           - cam.centre)
+            p = cam.rot @ (origin + su * layer.half_u * u_axis + sv * layer.half_v * v_axis - cam.centre)
             if p[2] <= 0.05:
                 return None
             corners.append((cam.f * p[0] / p[2] + cam.cx, cam.f * p[1] / p[2] + cam.cy))
@@ -438,7 +591,7 @@ def _shade(layers, cam: _Camera, time: int, lid: np.ndarray, depth: np.ndarray) 
         if k >= n_layers:
             continue
         layer = layers[k]
-        pyr = pool_texture(layer.texture)
+        pyr = texture_pyramid(layer.texture)
         sc0, sc1 = np.float32(0.5 ** lv), np.float32(0.5 ** (lv + 1))
         col = _sample_points(pyr[lv], (tu[s_:e_] + 0.5) * sc0 - 0.5, (tv[s_:e_] + 0.5) * sc0 - 0.5)
         if blend:
@@ -464,7 +617,7 @@ def render_sample(seed: int, height: int = 256, width: int = 512, *, focal: floa
         height, width: image size in pixels.
         focal: focal length in pixels (default: KITTI's 721.5377 scaled to `width`).
         baseline: stereo baseline in metres.
-        scene / scene_kw: a `SceneConfig` or its fields as keywords.
+        scene / scene_kw: a `SceneConfig`, the name of one of `SCENE_PRESETS`, or the fields as keywords.
         with_gt: False skips the ground truth (about half the cost; the images are identical) and returns only
             "cycle", "focal", "baseline", "seed".
 
@@ -483,16 +636,22 @@ def render_sample(seed: int, height: int = 256, width: int = 512, *, focal: floa
     """
     if height < 8 or width < 8:
         raise ValueError(f"render_sample: height and width must be >= 8, got {height}x{width}")
+    if isinstance(scene, str):
+        scene = scene_config(scene)
     cfg = scene if scene is not None else SceneConfig(**scene_kw)
-    f = float(focal) if focal is not None else default_focal(width)
+    # The draws of the scene variations use their own generator, so the default scenes stay as they were.
+    extra = np.random.default_rng([int(seed), 0xE7A])
+    f = (float(focal) if focal is not None else default_focal(width)) * extra.uniform(*cfg.focal_range)
+    baseline = float(baseline) * extra.uniform(*cfg.baseline_range)
     rng = np.random.default_rng(int(seed))
     layers, ego, (cx, cy) = _make_scene(rng, height, width, f, cfg)
+    _vary_scene(layers, extra, cfg)
     cams = _cameras(f, cx, cy, baseline, ego)
     times = (0, 0, 1, 1)
     casts = [_cast_grid(layers, cam, tm, height, width) for cam, tm in zip(cams, times)]
     frames = []
     for cam, tm, (lid, z) in zip(cams, times, casts):
-        img = _shade(layers, cam, tm, lid, z)
+        img = camera_response(_shade(layers, cam, tm, lid, z), extra, cfg.photometric)
         if cfg.noise_std > 0:
             img = img + rng.normal(0, cfg.noise_std, img.shape).astype(np.float32)
         frames.append(np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8))
@@ -521,8 +680,12 @@ def render_sample(seed: int, height: int = 256, width: int = 512, *, focal: floa
     valid0 = lid0 >= 0
     zf = np.where(valid0, z0, 0.0).astype(np.float32)
     pts = np.stack([(xs - np.float32(cx)) / np.float32(f) * zf, (ys - np.float32(cy)) / np.float32(f) * zf, zf], -1)
-    vel = np.array([lay.velocity for lay in layers] + [np.zeros(3)], np.float32)
-    pts = pts + vel[np.where(valid0, lid0, len(layers))]
+    # Each layer moves rigidly t -> t+1: p1 = spin (p0 - origin) + origin + velocity.
+    spin = np.array([lay.spin for lay in layers] + [np.eye(3)], np.float32)
+    shift = np.array([lay.velocity + (lay.origin - lay.spin @ lay.origin) for lay in layers] + [np.zeros(3)],
+                     np.float32)
+    k = np.where(valid0, lid0, len(layers))
+    pts = np.einsum("hwij,hwj->hwi", spin[k], pts) + shift[k]
     cam1 = cams[2]
     pc = (pts - cam1.centre.astype(np.float32)) @ cam1.rot.T.astype(np.float32)
     in_front = pc[..., 2] > 0.05
@@ -640,6 +803,7 @@ def write_kitti_layout(out_dir: str, num: int, seed: int = 0, height: int = 256,
         meta = {"generator": "bridge_jax.data.synthetic", "num": num, "seed": seed, "height": height,
                 "width": width, "focal": focal, "baseline": render_kw.get("baseline", DEFAULT_BASELINE),
                 "sample_seeds": seeds, "render_kw": {k: v for k, v in render_kw.items() if k != "scene"},
+                "scene": render_kw["scene"] if isinstance(render_kw.get("scene"), str) else None,
                 "layout": "KITTI 2015 training (image_2/3 *_10/_11.png, disp_occ_0, disp_noc_0, disp_occ_1, "
                           "disp_noc_1, flow_occ, flow_noc, calib_cam_to_cam/NNNNNN.txt)"}
         with open(os.path.join(tmp, "synthetic.json"), "w") as fh:
@@ -657,6 +821,10 @@ def build_parser():
     parser.add_argument("--width", type=int, default=512, help="image width in pixels")
     parser.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 721.5377*width/1242)")
     parser.add_argument("--baseline", type=float, default=DEFAULT_BASELINE, help="stereo baseline in metres")
+    parser.add_argument("--scene", default="demo", choices=tuple(SCENE_PRESETS),
+                        help="scene settings: demo (procedural textures), real (photo textures, photometric "
+                             "differences between the cameras, slanted and rotating objects, varied rigs) or "
+                             "heldout (held-out photos and settings, for checking generalisation)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
     return parser
 
@@ -679,7 +847,7 @@ def main(argv=None) -> int:
         if args.height < 8 or args.width < 8:
             raise ValueError(f"--height/--width must be >= 8, got {args.height}x{args.width}")
         out = write_kitti_layout(args.out, args.num, args.seed, args.height, args.width, overwrite=args.overwrite,
-                                 focal=args.focal, baseline=args.baseline)
+                                 focal=args.focal, baseline=args.baseline, scene=args.scene)
     except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

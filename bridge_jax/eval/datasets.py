@@ -247,14 +247,15 @@ def _disp_only(x):
     return x
 
 
-def synthetic_frames(num: int, seed: int, height: int, width: int) -> list[Frame]:
+def synthetic_frames(num: int, seed: int, height: int, width: int, scene: str = "demo") -> list[Frame]:
     """`num` frames of the built-in synthetic video rendered in memory at `height` x `width`: sample i uses
     seed `synthetic.sample_seed(seed, i)`, the same samples (images and ground truth) as the folder
     `synthetic.write_kitti_layout(dir, num, seed, height, width)` writes (without its 16-bit PNG rounding).
-    No calibration (no depth metrics) and no t+1 disparity (no scene-flow metrics)."""
+    `scene` names the generator's settings (`synthetic.SCENE_PRESETS`). No calibration (no depth metrics) and no
+    t+1 disparity (no scene-flow metrics)."""
     frames = []
     for i in range(num):
-        s = synthetic.render_sample(synthetic.sample_seed(seed, i), height=height, width=width)
+        s = synthetic.render_sample(synthetic.sample_seed(seed, i), height=height, width=width, scene=scene)
         images = dict(zip(("left_t", "right_t", "left_t1", "right_t1"), s["cycle"]))
         gt = {"flow_occ": s["flow"], "flow_occ_valid": s["valid_flow"], "flow_noc_valid": s["noc_flow"],
               "disp_occ_0": np.where(s["valid_disp_t"], s["disp_t"], 0.0).astype(np.float32),
