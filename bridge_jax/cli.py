@@ -66,6 +66,23 @@ def parse_size(text: str) -> tuple[int, int]:
     return h, w
 
 
+WORKING_SIZE_HELP = ("network input size: HxW (multiples of the model's input multiple: 64 for resnet_md and "
+                     "pwcnet, 8 for pwc_lite), 'native' (each input at its own resolution, rounded down to the "
+                     "model's multiple, at most 1024x768 pixels) or 'trained' (the size the checkpoint was trained "
+                     "at, else 256x512)")
+
+
+def parse_working_size(text: str):
+    """``--working-size``: ``"native"`` / ``"trained"`` (returned as such) or ``"HxW"`` → (H, W); an argparse
+    type."""
+    if text.strip().lower() in ("native", "trained"):
+        return text.strip().lower()
+    try:
+        return parse_size(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected HxW like 256x512, 'native' or 'trained', got {text!r}") from None
+
+
 def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
     line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""

@@ -180,9 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KITTI: sub-folder (default: training); eigen: a list file (default: the bundled 697 frames)")
     p.add_argument("--out", default=None, help="write results.json / results.md / pictures/ here")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
-    p.add_argument("--working-size", type=cli.parse_size, default=None, metavar="HxW",
-                   help="network input size, multiples of the model's input multiple (64 for resnet_md and pwcnet, "
-                        "8 for pwc_lite); default: the size the checkpoint was trained at, else 256x512")
+    p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
+                   help=cli.WORKING_SIZE_HELP + f"; default: {inference.DEFAULT_WORKING_SIZE}")
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")
@@ -209,9 +208,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise EvaluationError(f"--max-frames must be >= 1, got {args.max_frames}")
         if args.out is not None:
             files.check_output_dir(args.out, args.overwrite)
-        height, width = args.working_size or (None, None)
-        predictor = (inference.load_predictor(args.checkpoint, height=height, width=width, size_option="--working-size")
-                     if args.checkpoint else None)
+        predictor = (inference.load_predictor(args.checkpoint, working_size=args.working_size,
+                                              size_option="--working-size") if args.checkpoint else None)
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
                            garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
                            out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,

@@ -39,6 +39,12 @@ from bridge_jax.network import Network, check_separate_params, compute_dtype
 
 DEFAULT_HEIGHT = 256
 DEFAULT_WIDTH = 512
+NATIVE = "native"
+"""Working-size choice: run every input at (nearly) its own resolution (`native_working_size`)."""
+DEFAULT_WORKING_SIZE = "trained"
+"""What the commands run at when `--working-size` is not given."""
+NATIVE_MAX_PIXELS = 1024 * 768
+"""Largest working size (pixels) the native rule picks: bigger inputs are run at this many pixels (same aspect)."""
 TASKS = ("flow", "stereo")
 """What a pair is: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
 
@@ -160,6 +166,27 @@ def map_to_input_resolution(task: str, working_map: np.ndarray, height: int, wid
     return disparity_to_input_resolution(-working_map[..., 0], height, width)
 
 
+def native_working_size(model_name: str, height: int, width: int,
+                        max_pixels: int = NATIVE_MAX_PIXELS) -> tuple[int, int]:
+    """The working size that runs an `height x width` input at (nearly) its own resolution.
+
+    Each side is rounded *down* to a multiple of `models.NATIVE_MULTIPLE[model_name]` (for pwc_lite 64, so its
+    feature pyramid keeps all its levels and its coarse-to-fine search its full range), never below one
+    multiple, after shrinking both sides by the same factor when the input has more than `max_pixels` pixels.
+    Inputs smaller than the model's minimum come back at that minimum (they are upsampled).
+
+      native_working_size("pwc_lite", 500, 741) == (448, 704)
+      native_working_size("pwc_lite", 375, 1242) == (320, 1216)
+    """
+    multiple = models.NATIVE_MULTIPLE[model_name]
+    h, w = float(height), float(width)
+    if h * w > max_pixels:
+        shrink = (max_pixels / (h * w)) ** 0.5
+        h, w = h * shrink, w * shrink
+    size = (max(multiple, int(h) // multiple * multiple), max(multiple, int(w) // multiple * multiple))
+    return models.suggest_working_size(model_name, *size) or size
+
+
 def _check_task(task: str) -> bool:
     """True for a stereo pair; ValueError for an unknown task."""
     if task not in TASKS:
@@ -182,14 +209,23 @@ class Predictor:
       model_cfg: the model config (for the input-size multiple and for export metadata).
       mesh: optional 1-D device mesh; pairs are then sharded over it (padded to a multiple of its size) and the
         maps come back replicated (training's validation runs on the training mesh). Default: one device.
+      native: run each pair at its own resolution (`native_working_size`, capped at `max_pixels`) instead of
+        `height x width`; each new size compiles the network once (then it is cached).
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
     """
 
+    native = False
+    max_pixels = NATIVE_MAX_PIXELS
+    model_name = "resnet_md"
+
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
-                 dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None):
+                 dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None,
+                 native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS):
         self.model_cfg = dict(model_cfg) if model_cfg else None
-        models.check_working_size((model_cfg or {}).get("name", "resnet_md"), height, width)
+        self.model_name = (model_cfg or {}).get("name", "resnet_md")
+        models.check_working_size(self.model_name, height, width)
+        self.native, self.max_pixels = bool(native), int(max_pixels)
         check_separate_params(params, separate)
         self.net = Network(graphdef, separate=separate, dtype=compute_dtype(dtype))
         self.graphdef, self.separate, self.dtype = graphdef, separate, self.net.dtype
@@ -242,8 +278,16 @@ class Predictor:
             x = jax.make_array_from_callback(pairs.shape, self._pairs_sharding, lambda idx: pairs[idx])
         return np.asarray(self.forward(x, rows))[:n]
 
+    def working_size(self, height: int, width: int) -> tuple[int, int]:
+        """(H, W) the network runs at for an input of `height x width`: the fixed working size, or with
+        `native` the input's own (`native_working_size`)."""
+        if self.native:
+            return native_working_size(self.model_name, height, width, self.max_pixels)
+        return self.height, self.width
+
     def prepare(self, images_a: Sequence, images_b: Sequence) -> tuple[np.ndarray, tuple[int, int]]:
-        """Validate, convert and resize N pairs -> (`(N, H, W, 6)` float32, (h, w) of the inputs)."""
+        """Validate, convert and resize N pairs -> (`(N, H, W, 6)` float32 at `working_size(h, w)`, (h, w) of
+        the inputs)."""
         if len(images_a) != len(images_b) or len(images_a) == 0:
             raise ValueError(f"need the same, non-zero number of first and second images, got {len(images_a)} "
                              f"and {len(images_b)}")
@@ -256,28 +300,30 @@ class Predictor:
                 raise ValueError(f"all images must have the same size: image_a[0] is {size[0]}x{size[1]}, "
                                  f"{which} is {img.shape[0]}x{img.shape[1]} (h x w)")
         pairs = np.concatenate([np.stack(a), np.stack(b)], axis=-1)
-        return resize_images(pairs, self.height, self.width), size
+        return resize_images(pairs, *self.working_size(*size)), size
 
     def working_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b.
 
         The network is called on exactly `batch` pairs at a time (default: all jobs at once; the last call
         padded by repetition), so one compiled function serves a whole run; each pair is resized on its own,
-        so images of different sizes can share a call. Separate networks get one call per task.
+        so images of different sizes can share a call (with `native`, pairs share a call when their working
+        sizes agree). Separate networks get one call per task.
         """
         out: list[Optional[np.ndarray]] = [None] * len(jobs)
         stereo = [_check_task(task) for task, _, _ in jobs]
         if not self.separate:
             stereo = [False] * len(jobs)  # one shared network: no need to split (and pad) by task
-        for kind in dict.fromkeys(stereo):
-            idx = [i for i, s in enumerate(stereo) if s == kind]
+        sizes = [self.working_size(*np.shape(a)[:2]) for _, a, _ in jobs]
+        for kind in dict.fromkeys(zip(stereo, sizes)):
+            idx = [i for i, key in enumerate(zip(stereo, sizes)) if key == kind]
             size = batch or len(idx)
             for start in range(0, len(idx), size):
                 chunk = idx[start:start + size]
                 pairs = np.concatenate([self.prepare([jobs[i][1]], [jobs[i][2]])[0] for i in chunk])
                 if len(chunk) < size:
                     pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
-                for i, m in zip(chunk, self.run_network(pairs, kind)):
+                for i, m in zip(chunk, self.run_network(pairs, kind[0])):
                     out[i] = m
         return out  # type: ignore[return-value]
 
@@ -325,17 +371,41 @@ def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
         return None
 
 
+def resize_notice(predictor: Predictor, height: int, width: int, factor: float = 2.0) -> Optional[str]:
+    """One line for the user when an input of `height x width` is shrunk by more than `factor` per side to run
+    (fine structure and small motions are lost there), naming the native size; None otherwise."""
+    wh, ww = predictor.working_size(height, width)
+    shrink = max(height / wh, width / ww)
+    if shrink <= factor:
+        return None
+    native = native_working_size(predictor.model_name, height, width, predictor.max_pixels)
+    hint = "" if (wh, ww) == native else f"; --working-size native runs it at {native[0]}x{native[1]}"
+    return f"note: the {height}x{width} input runs at {wh}x{ww} ({shrink:.1f}x smaller per side){hint}"
+
+
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
-                   dtype: Any = None, size_option: str = "working size") -> Predictor:
+                   dtype: Any = None, size_option: str = "working size", native: bool = False,
+                   max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.load_params` accepts (params-only dir, training workdir, step dir).
 
     Working size: `height`/`width` if given, else the size a training workdir or shipped model was trained at
-    (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's).
+    (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's). `native=True`
+    runs each input at its own resolution instead (`native_working_size`; that size is then only the fallback).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
+    `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
+    "trained", or None (the default, `DEFAULT_WORKING_SIZE`).
     Raises ValueError naming the checkpoint (missing, unreadable), or `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits.
     """
+    if working_size is None:
+        working_size = DEFAULT_WORKING_SIZE
+    if working_size == NATIVE:
+        native = True
+    elif isinstance(working_size, tuple):
+        height, width = working_size
+    elif working_size != "trained":
+        raise ValueError(f"{size_option} {working_size!r}: expected HxW, 'native' or 'trained'")
     if height is None or width is None:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
         height = trained[0] if height is None else height
@@ -346,8 +416,10 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     graphdef, _ = models.abstract_init(cfg)
     if dtype is None:
         dtype = cfg.get("dtype")
-    return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate)
+    return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate,
+                     native=native, max_pixels=max_pixels)
 
 
-__all__ = ["Predictor", "load_predictor", "trained_working_size", "to_rgb_float", "resize_images",
+__all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",
+           "to_rgb_float", "resize_images",
            "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "TASKS"]

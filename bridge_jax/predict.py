@@ -412,6 +412,10 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
         try:
             prev = None
             for index, (left, right) in enumerate(source.frames):
+                if index == 0 and hasattr(predictor, "working_size"):
+                    note = inference.resize_notice(predictor, *np.shape(left)[:2])
+                    if note:
+                        print(note, file=sys.stderr)
                 if write_video:
                     pending.setdefault(index, {})["image"] = left
                 if prev is not None:
@@ -544,9 +548,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video: mono (none) or left|right side by side in each frame (sbs)")
-    p.add_argument("--working-size", type=cli.parse_size, default=None, metavar="HxW",
-                   help="network input size, multiples of the model's input multiple (64 for resnet_md and pwcnet, "
-                        "8 for pwc_lite); default: the size the checkpoint was trained at, else 256x512")
+    p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
+                   help=cli.WORKING_SIZE_HELP + f"; default: {inference.DEFAULT_WORKING_SIZE}")
     p.add_argument("--batch", type=int, default=4, help="pairs per inference call (one compiled shape)")
     p.add_argument("--raw", default="png",
                    help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "
@@ -593,20 +596,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if (args.focal is None) != (args.baseline is None):
             raise PredictError("--focal and --baseline go together")
         files.check_output_dir(args.out, args.overwrite)
-        height, width = args.working_size or (None, None)
         if args.kitti_submission:
             if not args.data_dir:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
-            predictor = inference.load_predictor(args.checkpoint, height=height, width=width,
+            predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size")
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
-            predictor = inference.load_predictor(args.checkpoint, height=height, width=width,
+            predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size")
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,

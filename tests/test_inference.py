@@ -169,3 +169,52 @@ def test_default_working_size_is_the_trained_size(tiny_checkpoint, tmp_path):
     assert (p.height, p.width) == (64, 192)
     p = inference.load_predictor(d, height=128, width=256)
     assert (p.height, p.width) == (128, 256)
+
+
+@pytest.mark.parametrize("model, size, expected", [
+    ("pwc_lite", (500, 741), (448, 704)),      # Middlebury Motorcycle: rounded down to multiples of 64
+    ("pwc_lite", (375, 1242), (320, 1216)),    # KITTI
+    ("pwc_lite", (64, 128), (64, 128)),        # already a multiple: unchanged
+    ("pwc_lite", (127, 129), (64, 128)),       # just under the next multiple: down
+    ("pwc_lite", (20, 30), (64, 64)),          # below one multiple: the minimum (upsampled)
+    ("pwc_lite", (8000, 8000), (832, 832)),    # capped at 1024*768 pixels, same aspect: 886 -> 832
+    ("resnet_md", (300, 1000), (256, 960)),
+])
+def test_native_working_size_rule(model, size, expected):
+    assert inference.native_working_size(model, *size) == expected
+
+
+def test_native_predictor_runs_each_input_at_its_own_size(rng):
+    """A pwc_lite net built for 64x128 predicts at another input's native size (its pyramid follows the input),
+    and the maps come back in pixels of the input."""
+    cfg = models.model_config("pwc_lite", head_init="kaiming_normal")
+    graphdef, params = models.init(0, cfg)
+    pred = inference.Predictor(graphdef, params, height=64, width=128, model_cfg=cfg, native=True)
+    assert pred.working_size(150, 200) == (128, 192)
+    a = rng.integers(0, 256, size=(150, 200, 3), dtype=np.uint8)
+    b = rng.integers(0, 256, size=(150, 200, 3), dtype=np.uint8)
+    flow = pred.predict_pair(a, b)
+    assert flow.shape == (150, 200, 2) and np.isfinite(flow).all()
+    # the same numbers as running the network on the input resized to 128x192 by hand
+    pairs = inference.resize_images(np.concatenate([a, b], -1).astype(np.float32)[None] / 255.0, 128, 192)
+    raw = np.asarray(models.apply(graphdef, params, pairs)["px"][0])[0]
+    np.testing.assert_allclose(flow, inference.flow_to_input_resolution(raw, 150, 200), rtol=1e-4, atol=1e-4)
+    fixed = inference.Predictor(graphdef, params, height=64, width=128, model_cfg=cfg)
+    assert fixed.working_size(150, 200) == (64, 128)
+
+
+def test_resize_notice_names_the_native_size():
+    pred = ConstantPredictor(np.zeros((64, 128, 2), np.float32))
+    pred.model_name = "pwc_lite"
+    note = inference.resize_notice(pred, 500, 741)
+    assert note == ("note: the 500x741 input runs at 64x128 (7.8x smaller per side); --working-size native runs it "
+                    "at 448x704")
+    assert inference.resize_notice(pred, 100, 200) is None  # 1.6x: no notice
+
+
+def test_working_size_option(tiny_checkpoint):
+    assert inference.load_predictor(tiny_checkpoint, working_size="native").native
+    p = inference.load_predictor(tiny_checkpoint, working_size=(128, 192))
+    assert (p.height, p.width, p.native) == (128, 192, False)
+    with pytest.raises(ValueError, match="--working-size 'huge'"):
+        inference.load_predictor(tiny_checkpoint, working_size="huge", size_option="--working-size")

@@ -46,6 +46,11 @@ INPUT_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.M
                   "pwc_lite": pwc_lite.MULTIPLE}
 """Working height and width must be multiples of this, per model name."""
 
+NATIVE_MULTIPLE = {"resnet_md": resnet_md.MULTIPLE, "resnet_md_tiny": resnet_md.MULTIPLE, "pwcnet": pwcnet.MULTIPLE,
+                   "pwc_lite": 2 ** len(pwc_lite.DEFAULT_CONFIG["pyramid"])}
+"""The multiple the native working-size rule rounds to (`inference.native_working_size`): pwc_lite runs at any
+multiple of 8, but at multiples of 64 its pyramid keeps all 6 levels (a search range of 4 x 64 pixels)."""
+
 
 def suggest_working_size(name: str, height: int, width: int) -> tuple[int, int] | None:
     """The valid working size of model `name` closest to ``height x width`` (sum of the differences): the
@@ -189,4 +194,4 @@ def param_count(params: Any) -> int:
     return int(sum(math.prod(p.shape) for p in jax.tree.leaves(params)))
 
 
-__all__ = ["NAMES", "INPUT_MULTIPLE", "check_working_size", "model_config", "init", "abstract_init", "apply", "param_count"]
+__all__ = ["NAMES", "INPUT_MULTIPLE", "NATIVE_MULTIPLE", "check_working_size", "model_config", "init", "abstract_init", "apply", "param_count"]
