@@ -1,0 +1,340 @@
+"""Real-image checks: the models against OpenCV on real photographs with exact ground truth.
+
+Three checks, each run for every model (`--models`, shipped names or checkpoint paths) at every working size
+(`--sizes`: `trained` = the size the model was trained at, `native` = each input at its own resolution, or HxW),
+next to OpenCV on the same inputs at full resolution:
+
+1. **Middlebury "Motorcycle"** (scikit-image's stereo pair with its ground-truth disparity, 741x500): disparity
+   EPE and D1 (KITTI outliers: > 3 px and > 5 %) over the pixels with ground truth, against SGBM with its holes
+   filled (`eval.baselines.sgbm_disparity`).
+2. **Real photos under known motion** (`homography_pair`): a held-out photo (`data.photos.HELDOUT_PHOTOS`, never
+   used in training) seen through a random homography, with 2-3 independently moving pasted patches (affine
+   motion) cut from another held-out photo, and a camera-response change plus noise between the frames. The flow
+   is exact by construction and so is the occlusion mask: flow EPE-all / EPE-noc and Fl-all against DIS (medium).
+3. **Held-out synthetic frames** (`synthetic.SCENE_PRESETS["heldout"]`: held-out photos as textures, a focal
+   length and baseline no training preset draws, stronger photometric differences), 256x512: flow EPE-all,
+   EPE-noc and disparity EPE / D1 against DIS and SGBM, and zero motion for scale.
+
+    python experiments/real_images.py --models demo,long --sizes trained,native \\
+        --out experiments/results/real_images.md --pictures experiments/results/real_images
+
+Writes the markdown table (machine and date in its header), a JSON file beside it with every number, and picture
+panels (input | ground truth | OpenCV | each model) under `--pictures`.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+
+import cv2
+import numpy as np
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if REPO not in sys.path:
+    sys.path.insert(0, REPO)
+
+from bridge_jax import inference, metrics, visualize  # noqa: E402
+from bridge_jax.data import photos  # noqa: E402
+from bridge_jax.eval import baselines  # noqa: E402
+from bridge_jax.eval.datasets import synthetic_frames  # noqa: E402
+
+HOMOGRAPHY_SEED = 20261202
+HELDOUT_SYNTHETIC_SEED = 2_000_003  # disjoint from training (seed 0) and the validation seed (1,000,003)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Real photos under known motion
+# ----------------------------------------------------------------------------------------------------------
+
+def random_homography(rng: np.random.Generator, height: int, width: int, max_shift: float = 12.0) -> np.ndarray:
+    """A 3x3 homography in pixel coordinates (x = column, y = row, centres at integers), frame t -> t+1: about
+    the image centre a rotation (±3°), zoom (0.95-1.05), shear (±0.02) and perspective (±4e-5 / px), then a
+    shift of up to `max_shift` px per axis."""
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    a, s = np.deg2rad(rng.uniform(-3, 3)), rng.uniform(0.95, 1.05)
+    lin = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.array(
+        [[1.0, rng.uniform(-0.02, 0.02)], [0.0, 1.0]])
+    g = np.eye(3)
+    g[:2, :2] = lin
+    g[2, :2] = rng.uniform(-4e-5, 4e-5, 2)
+    centre, back = np.eye(3), np.eye(3)
+    centre[:2, 2] = (-cx, -cy)
+    back[:2, 2] = (cx + rng.uniform(-max_shift, max_shift), cy + rng.uniform(-max_shift, max_shift))
+    return back @ g @ centre
+
+
+def apply_homography(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Maps pixel coordinates `(x, y)` (any same-shape arrays) through `h`."""
+    d = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    return (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / d, (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / d
+
+
+def _patch_ids(patches: list[dict], x: np.ndarray, y: np.ndarray, time: int) -> np.ndarray:
+    """Topmost patch (1..K; 0 = background) covering each position `(x, y)` at `time` (0 = t, 1 = t+1)."""
+    ids = np.zeros(x.shape, np.int32)
+    for k, p in enumerate(patches, start=1):
+        lx, ly = _patch_local(p, x, y, time)
+        if p["ellipse"]:
+            inside = (lx / p["half"][0]) ** 2 + (ly / p["half"][1]) ** 2 <= 1.0
+        else:
+            inside = (np.abs(lx) <= p["half"][0]) & (np.abs(ly) <= p["half"][1])
+        ids[inside] = k
+    return ids
+
+
+def _patch_local(p: dict, x: np.ndarray, y: np.ndarray, time: int) -> tuple[np.ndarray, np.ndarray]:
+    """Patch-local coordinates of positions `(x, y)`: r = p - c at t, r = M^-1 (q - c - v) at t+1."""
+    dx, dy = x - p["centre"][0], y - p["centre"][1]
+    if time == 0:
+        return dx, dy
+    dx, dy = dx - p["shift"][0], dy - p["shift"][1]
+    inv = np.linalg.inv(p["affine"])
+    return inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+
+
+def camera_change(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """uint8 RGB -> uint8 RGB through another camera response: per-channel gain 0.9-1.1, offset ±3 %, gamma
+    0.9-1.1 and noise of 1 % std."""
+    x = img.astype(np.float32) / 255.0
+    x = np.clip(x * rng.uniform(0.9, 1.1, 3) + rng.uniform(-0.03, 0.03, 3), 0, 1) ** rng.uniform(0.9, 1.1)
+    x = x + rng.normal(0.0, 0.01, x.shape)
+    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
+
+
+def homography_pair(photo: np.ndarray, patch_photo: np.ndarray, rng: np.random.Generator, *,
+                    homography: np.ndarray | None = None, patches: list[dict] | None = None,
+                    margin: float = 0.1, photometric: bool = True) -> dict:
+    """Two frames of a real photo under known motion, with exact flow and occlusion.
+
+    Frame t is the photo cropped by `margin` on each side; frame t+1 sees the same plane through the homography
+    `homography` (frame-t pixel -> frame-t+1 pixel; default `random_homography`). Patches of `patch_photo`
+    (default 2-3 random rectangles and ellipses, 25-55 px half sizes) lie on top, each moving by its own affine
+    map q = c + v + M (p - c). Frame t+1 gets `camera_change` when `photometric`.
+
+    Returns {"frame_t", "frame_t1": uint8 (H, W, 3), "flow": float32 (H, W, 2) px t -> t+1, "valid": all True,
+    "noc": bool (H, W) — the match lies inside frame t+1 and shows the same surface there}.
+    """
+    ph, pw = photo.shape[:2]
+    my, mx = int(round(margin * ph)), int(round(margin * pw))
+    height, width = ph - 2 * my, pw - 2 * mx
+    g = random_homography(rng, height, width) if homography is None else np.asarray(homography, np.float64)
+    if patches is None:
+        patches = []
+        for _ in range(int(rng.integers(2, 4))):
+            a, s = np.deg2rad(rng.uniform(-5, 5)), rng.uniform(0.95, 1.05)
+            patches.append({"centre": (rng.uniform(0.15, 0.85) * width, rng.uniform(0.15, 0.85) * height),
+                            "half": (rng.uniform(25, 55), rng.uniform(25, 55)), "ellipse": bool(rng.uniform() < 0.5),
+                            "shift": tuple(rng.uniform(-15, 15, 2)),
+                            "affine": s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]),
+                            "offset": (rng.uniform(60, patch_photo.shape[1] - 60),
+                                       rng.uniform(60, patch_photo.shape[0] - 60))})
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+
+    def render(time: int) -> tuple[np.ndarray, np.ndarray]:
+        if time == 0:
+            sx, sy = xs, ys
+        else:
+            sx, sy = apply_homography(np.linalg.inv(g), xs, ys)
+        img = cv2.remap(photo, (sx + mx).astype(np.float32), (sy + my).astype(np.float32), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT_101)
+        ids = _patch_ids(patches, xs, ys, time)
+        for k, p in enumerate(patches, start=1):
+            lx, ly = _patch_local(p, xs, ys, time)
+            tex = cv2.remap(patch_photo, (lx + p["offset"][0]).astype(np.float32),
+                            (ly + p["offset"][1]).astype(np.float32), cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REFLECT_101)
+            img[ids == k] = tex[ids == k]
+        return img, ids
+
+    frame_t, ids_t = render(0)
+    frame_t1, _ = render(1)
+    tx, ty = apply_homography(g, xs, ys)
+    for k, p in enumerate(patches, start=1):
+        sel = ids_t == k
+        dx, dy = xs[sel] - p["centre"][0], ys[sel] - p["centre"][1]
+        m = p["affine"]
+        tx[sel] = p["centre"][0] + p["shift"][0] + m[0, 0] * dx + m[0, 1] * dy
+        ty[sel] = p["centre"][1] + p["shift"][1] + m[1, 0] * dx + m[1, 1] * dy
+    inside = (tx >= 0) & (tx <= width - 1) & (ty >= 0) & (ty <= height - 1)
+    noc = inside & (_patch_ids(patches, tx, ty, 1) == ids_t)
+    if photometric:
+        frame_t1 = camera_change(frame_t1, rng)
+    flow = np.stack([tx - xs, ty - ys], -1).astype(np.float32)
+    return {"frame_t": frame_t, "frame_t1": frame_t1, "flow": flow, "valid": np.ones((height, width), bool),
+            "noc": noc}
+
+
+def homography_set(per_photo: int = 3, seed: int = HOMOGRAPHY_SEED) -> list[dict]:
+    """`per_photo` pairs of each held-out photo; the patches come from the next held-out photo."""
+    rng = np.random.default_rng(seed)
+    names = photos.HELDOUT_PHOTOS
+    images = {n: photos.load_photo(n) for n in names}
+    out = []
+    for i, name in enumerate(names):
+        for j in range(per_photo):
+            pair = homography_pair(images[name], images[names[(i + 1) % len(names)]], rng)
+            pair["id"] = f"{name}-{j}"
+            out.append(pair)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Running the checks
+# ----------------------------------------------------------------------------------------------------------
+
+def motorcycle() -> dict:
+    """scikit-image's Middlebury Motorcycle pair: uint8 left/right (500, 741, 3), disparity (inf = no GT)."""
+    from skimage import data as skdata
+    left, right, disp = skdata.stereo_motorcycle()
+    valid = np.isfinite(disp) & (disp > 0)
+    return {"left": left, "right": right, "disp": np.where(valid, disp, 0).astype(np.float32), "valid": valid}
+
+
+def _mean(rows: list[dict]) -> dict:
+    return {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
+
+
+def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pictures: str | None = None) -> dict:
+    """methods: name -> predictor (or "opencv"/"zero"). Returns {check: {method: metrics}}."""
+    results: dict[str, dict] = {"motorcycle": {}, "homography": {}, "heldout_synthetic": {}}
+    timing: dict[str, float] = {}
+    moto = motorcycle()
+    hom = homography_set(per_photo)
+    syn = synthetic_frames(synthetic_num, HELDOUT_SYNTHETIC_SEED, 256, 512, scene="heldout")
+    panels: dict[str, list] = {"motorcycle": [], "homography": [], "heldout_synthetic": []}
+    for name, method in methods.items():
+        t0 = time.perf_counter()
+        # 1. Motorcycle
+        if method == "zero":
+            d = np.zeros_like(moto["disp"])
+        elif method == "opencv":
+            d = baselines.sgbm_disparity(moto["left"], moto["right"])
+        else:
+            d = method.predict([("stereo", moto["left"], moto["right"])])[0]
+        results["motorcycle"][name] = _pick(metrics.disparity_metrics(d, moto["disp"], moto["valid"]),
+                                            ("epe_all", "d1_all"))
+        panels["motorcycle"].append((name, visualize.disparity_to_color(d, vmax=64.0)))
+        # 2. Homographies
+        rows = []
+        for k, pair in enumerate(hom):
+            if method == "zero":
+                f = np.zeros_like(pair["flow"])
+            elif method == "opencv":
+                f = baselines.dis_flow(pair["frame_t"], pair["frame_t1"])
+            else:
+                f = method.predict([("flow", pair["frame_t"], pair["frame_t1"])])[0]
+            rows.append(_pick(metrics.flow_metrics(f, pair["flow"], pair["valid"], pair["noc"]),
+                              ("epe_all", "epe_noc", "fl_all")))
+            if k == 0:
+                panels["homography"].append((name, visualize.flow_to_color(f, max_flow=20.0)))
+        results["homography"][name] = _mean(rows)
+        # 3. Held-out synthetic
+        rows = []
+        for k, fr in enumerate(syn):
+            im = fr.images
+            if method == "zero":
+                f, d = np.zeros_like(fr.gt["flow_occ"]), np.zeros(fr.size, np.float32)
+            elif method == "opencv":
+                f = baselines.dis_flow(im["left_t"], im["left_t1"])
+                d = baselines.sgbm_disparity(im["left_t"], im["right_t"])
+            else:
+                d, f = method.predict([("stereo", im["left_t"], im["right_t"]), ("flow", im["left_t"], im["left_t1"])])
+            fm = metrics.flow_metrics(f, fr.gt["flow_occ"], fr.gt["flow_occ_valid"], fr.gt["flow_noc_valid"])
+            dm = metrics.disparity_metrics(d, fr.gt["disp_occ_0"])
+            rows.append({"flow_epe_all": fm["epe_all"], "flow_epe_noc": fm["epe_noc"], "fl_all": fm["fl_all"],
+                         "disp_epe_all": dm["epe_all"], "d1_all": dm["d1_all"]})
+            if k == 0:
+                panels["heldout_synthetic"].append((name, visualize.flow_to_color(f, max_flow=30.0)))
+        results["heldout_synthetic"][name] = _mean(rows)
+        timing[name] = time.perf_counter() - t0
+        print(f"{name}: {timing[name]:.1f} s", file=sys.stderr, flush=True)
+    if pictures:
+        os.makedirs(pictures, exist_ok=True)
+        gt_images = {"motorcycle": (moto["left"], visualize.disparity_to_color(moto["disp"], vmax=64.0)),
+                     "homography": (hom[0]["frame_t"], visualize.flow_to_color(hom[0]["flow"], max_flow=20.0)),
+                     "heldout_synthetic": (syn[0].images["left_t"],
+                                           visualize.flow_to_color(syn[0].gt["flow_occ"], max_flow=30.0))}
+        for check, items in panels.items():
+            image, gt = gt_images[check]
+            tiles = [image, gt] + [t for _, t in items]
+            labels = ["input", "ground truth"] + [n for n, _ in items]
+            visualize.write_image(os.path.join(pictures, f"{check}.png"), visualize.panel(tiles, labels, ncols=3))
+    results["seconds"] = timing
+    return results
+
+
+def _pick(d: dict, keys) -> dict:
+    return {k: d[k] for k in keys}
+
+
+def markdown(results: dict, header: str) -> str:
+    lines = [header, ""]
+    cols = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
+            "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
+            "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
+                                  ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")]}
+    titles = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
+              "homography": "Held-out photos under homographies + moving patches (flow)",
+              "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)"}
+    for check, cs in cols.items():
+        lines += [f"### {titles[check]}", "", "| method | " + " | ".join(c[1] for c in cs) + " |",
+                  "|---" * (len(cs) + 1) + "|"]
+        for name, m in results[check].items():
+            lines.append(f"| {name} | " + " | ".join(f"{m[c[0]]:.3f}" if c[0].startswith(("epe", "flow_epe",
+                                                                                             "disp_epe"))
+                                                      else f"{m[c[0]]:.1f}" for c in cs) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def cpu_kind() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            info = f.read()
+    except OSError:
+        return platform.processor() or "unknown CPU"
+    model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), "?")
+    isa = "AVX-512" if " avx512f" in info else ("AVX2" if " avx2" in info else "no AVX2")
+    return f"{os.cpu_count()}-core {model} ({isa})"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--models", default="demo", help="comma list of shipped model names or checkpoint paths")
+    p.add_argument("--sizes", default="trained,native", help="comma list: trained, native, or HxW")
+    p.add_argument("--per-photo", type=int, default=3, help="homography pairs per held-out photo")
+    p.add_argument("--synthetic-num", type=int, default=16, help="held-out synthetic frames")
+    p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
+    p.add_argument("--pictures", default=None, help="folder for the picture panels")
+    args = p.parse_args(argv)
+    methods: dict = {"zero motion": "zero", "OpenCV (SGBM filled / DIS medium)": "opencv"}
+    for model in [m for m in args.models.split(",") if m]:
+        for size in [s for s in args.sizes.split(",") if s]:
+            ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
+            pred = inference.load_predictor(model, working_size=ws)
+            label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
+            if size == "trained":
+                label += f" ({pred.height}x{pred.width})"
+            methods[label] = pred
+    results = run_checks(methods, per_photo=args.per_photo, synthetic_num=args.synthetic_num,
+                         pictures=args.pictures)
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    header = f"## Real-image checks, {stamp}, {cpu_kind()}"
+    text = markdown(results, header)
+    print(text)
+    print("seconds per method:", {k: round(v, 1) for k, v in results["seconds"].items()})
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text + "\n")
+        with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
+            json.dump({"date": stamp, "machine": cpu_kind(), **results}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The real-image experiment's ground truth (experiments/real_images.py): hand-computed cases."""
+import numpy as np
+import pytest
+
+from experiments import real_images
+
+
+def _photo(rng, h=120, w=160):
+    """A smooth random RGB image (bilinear sampling of it is accurate)."""
+    import cv2
+    return cv2.resize(rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8), (w, h),
+                      interpolation=cv2.INTER_CUBIC)
+
+
+def test_translation_homography_flow_and_pixels():
+    """A pure shift by (+3, +2) px: flow (3, 2) everywhere, frame t+1 at (x + 3, y + 2) is frame t at (x, y), and
+    noc holds exactly the pixels whose match lies inside frame t+1."""
+    rng = np.random.default_rng(0)
+    photo = _photo(rng)
+    shift = np.array([[1.0, 0, 3.0], [0, 1.0, 2.0], [0, 0, 1.0]])
+    out = real_images.homography_pair(photo, photo, rng, homography=shift, patches=[], photometric=False)
+    h, w = out["frame_t"].shape[:2]
+    assert (h, w) == (120 - 24, 160 - 32)  # 10 % margins, rounded
+    np.testing.assert_allclose(out["flow"][..., 0], 3.0)
+    np.testing.assert_allclose(out["flow"][..., 1], 2.0)
+    np.testing.assert_array_equal(out["frame_t1"][2:, 3:], out["frame_t"][:h - 2, :w - 3])
+    expected_noc = np.zeros((h, w), bool)
+    expected_noc[:h - 2, :w - 3] = True
+    np.testing.assert_array_equal(out["noc"], expected_noc)
+    assert out["valid"].all()
+
+
+def test_zoom_homography_flow_is_hand_computed():
+    """A 2 % zoom about pixel (0, 0): flow(x, y) = (0.02 x, 0.02 y)."""
+    rng = np.random.default_rng(1)
+    photo = _photo(rng)
+    zoom = np.diag([1.02, 1.02, 1.0])
+    out = real_images.homography_pair(photo, photo, rng, homography=zoom, patches=[], photometric=False)
+    h, w = out["flow"].shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w]
+    np.testing.assert_allclose(out["flow"][..., 0], 0.02 * xs, atol=1e-5)
+    np.testing.assert_allclose(out["flow"][..., 1], 0.02 * ys, atol=1e-5)
+
+
+def test_moving_patch_flow_and_occlusion():
+    """A square patch moving by (+10, 0) over a static background: flow 10 on the patch, 0 elsewhere; the
+    background it covers at t+1 (x in [c+hw, c+hw+10)) is occluded, the patch itself is not."""
+    rng = np.random.default_rng(2)
+    photo = _photo(rng)
+    patch = {"centre": (60.0, 48.0), "half": (10.0, 10.0), "ellipse": False, "shift": (10.0, 0.0),
+             "affine": np.eye(2), "offset": (80.0, 60.0)}
+    out = real_images.homography_pair(photo, photo, rng, homography=np.eye(3), patches=[patch],
+                                      photometric=False)
+    flow, noc = out["flow"], out["noc"]
+    assert flow[48, 60, 0] == 10.0 and flow[48, 60, 1] == 0.0      # on the patch
+    assert flow[48, 20, 0] == 0.0                                   # background
+    assert noc[48, 60] and noc[48, 20]
+    assert not noc[48, 75]                                           # covered at t+1 by the moved patch
+    assert noc[48, 81]                                               # beyond its new right edge
+    # the patch's pixels moved with it
+    np.testing.assert_array_equal(out["frame_t1"][40:57, 62:81], out["frame_t"][40:57, 52:71])
+
+
+def test_camera_change_changes_the_images_only():
+    rng = np.random.default_rng(3)
+    photo = _photo(rng)
+    a = real_images.homography_pair(photo, photo, np.random.default_rng(5), photometric=False)
+    b = real_images.homography_pair(photo, photo, np.random.default_rng(5), photometric=True)
+    np.testing.assert_array_equal(a["flow"], b["flow"])
+    np.testing.assert_array_equal(a["noc"], b["noc"])
+    np.testing.assert_array_equal(a["frame_t"], b["frame_t"])
+    assert not np.array_equal(a["frame_t1"], b["frame_t1"])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_homography_keeps_motion_moderate(seed):
+    g = real_images.random_homography(np.random.default_rng(seed), 300, 400)
+    ys, xs = np.mgrid[0:300:10, 0:400:10].astype(float)
+    tx, ty = real_images.apply_homography(g, xs, ys)
+    mag = np.hypot(tx - xs, ty - ys)
+    assert 0.5 < mag.mean() < 40.0
