@@ -620,6 +620,17 @@ def self_supervision_loss(teacher_px, student_px, offset, cfg: LossConfig) -> Ma
     return Masked(jnp.sum(pen * m) / n, (jnp.sum(m) + SELF_SUPERVISION_EPS) / n)
 
 
+def _check_student(student: Student, num_cycles: int, hw, cfg: LossConfig) -> None:
+    c, rows = cfg.self_supervision_crop, cyc.rows_per_cycle(cfg.pairs)
+    want = (num_cycles * rows, hw[0] - 2 * c, hw[1] - 2 * c, 2)
+    if tuple(student.px.shape) != want:
+        raise ValueError(f"student maps must have shape {want} ({num_cycles} cycles of {rows} rows, the frames "
+                         f"cropped by loss.self_supervision_crop={c} on each side), got {tuple(student.px.shape)}")
+    if tuple(student.offsets.shape) != (num_cycles, 2):
+        raise ValueError(f"student offsets must have shape {(num_cycles, 2)} (y, x per cycle), got "
+                         f"{tuple(student.offsets.shape)}")
+
+
 def add_self_supervision(total, terms: dict, term, cfg: LossConfig, step=None):
     """The total loss with the reduced self-supervision term added, and the terms with it as "self_supervision"
     (unweighted; 0 before `cfg.self_supervision_start_step`; step None = after it) and the new "total"."""
@@ -836,17 +847,16 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None, student:
         raise ValueError(f"maps have {n} rows, not a multiple of the {b} cycles")
     if (student is not None) != (cfg.self_supervision > 0):
         raise ValueError("the student maps (`student`) are needed exactly when loss.self_supervision > 0, got "
-                         f"self_supervision={cfg.self_supervision} and student={'given' if student is not None else None}")
+                         f"self_supervision={cfg.self_supervision} and student "
+                         f"{'given' if student is not None else None}")
+    if student is not None:
+        _check_student(student, b, cycles.shape[2:4], cfg)
     per_cycle = cyc.unbatch_maps(maps, b)
     terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p, step))(per_cycle, cycles, pyramids)
     total, named = total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)
     if student is None:
         return total, named
-    if tuple(student.offsets.shape) != (b, 2):
-        raise ValueError(f"student offsets must have shape {(b, 2)} (y, x per cycle), got {tuple(student.offsets.shape)}")
     rows = cyc.rows_per_cycle(cfg.pairs)
-    if student.px.shape[0] != b * rows:
-        raise ValueError(f"student maps have {student.px.shape[0]} rows, expected {b * rows} ({b} cycles of {rows})")
     teacher = per_cycle["px"][0]  # (B, 2P or 8, H, W, 2); as `_select_rows`, all 8 rows are accepted
     if teacher.shape[1] != rows:
         teacher = teacher[:, np.array(list(cfg.pairs) + [4 + k for k in cfg.pairs])]

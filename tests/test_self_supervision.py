@@ -136,16 +136,18 @@ def _cycle_case():
 
 def test_cycle_loss_adds_the_weighted_term_from_the_start_step_and_is_unchanged_when_off():
     maps, cycles, px0 = _cycle_case()
-    cfg = losses.LossConfig(self_supervision=0.3, self_supervision_crop=8, self_supervision_start_step=10)
+    # the finest scale only, to keep the test quick (the term does not depend on the other scales)
+    cfg = losses.LossConfig(self_supervision=0.3, self_supervision_crop=8, self_supervision_start_step=10,
+                            scales="finest")
     offsets = np.array([[8, 8], [3, 12]], np.int32)
     delta = np.array([0.5, -0.2], np.float32)
     student = np.concatenate([window(px0[b], offsets[b], 8) + delta for b in range(2)])
     s = losses.Student(jnp.asarray(student), jnp.asarray(offsets))
-    off_total, off_terms = losses.cycle_loss(maps, cycles, losses.LossConfig())
+    off_total, off_terms = losses.cycle_loss(maps, cycles, losses.LossConfig(scales="finest"))
     assert "self_supervision" not in off_terms
     # the switch at weight 0 with other crop / start values changes nothing, bit for bit
-    same_total, same_terms = losses.cycle_loss(maps, cycles, losses.LossConfig(self_supervision_crop=8,
-                                                                              self_supervision_start_step=5))
+    same_total, same_terms = losses.cycle_loss(maps, cycles, losses.LossConfig(
+        scales="finest", self_supervision_crop=8, self_supervision_start_step=5))
     assert float(same_total) == float(off_total) and same_terms.keys() == off_terms.keys()
     before, tb = losses.cycle_loss(maps, cycles, cfg, step=jnp.int32(9), student=s)
     after, ta = losses.cycle_loss(maps, cycles, cfg, step=jnp.int32(10), student=s)
@@ -174,9 +176,12 @@ def test_the_student_is_needed_exactly_when_the_switch_is_on():
         losses.cycle_loss(maps, cycles, cfg, student=bad)
 
 
+CROP_ERROR = "loss.self_supervision_crop must be a positive multiple of 4"
+
+
 @pytest.mark.parametrize("kw, match", [
-    (dict(self_supervision=0.3, self_supervision_crop=6), "loss.self_supervision_crop must be a positive multiple of 4"),
-    (dict(self_supervision=0.3, self_supervision_crop=0), "loss.self_supervision_crop must be a positive multiple of 4"),
+    (dict(self_supervision=0.3, self_supervision_crop=6), CROP_ERROR),
+    (dict(self_supervision=0.3, self_supervision_crop=0), CROP_ERROR),
     (dict(self_supervision=-1.0), "loss.self_supervision must be a number >= 0"),
     (dict(self_supervision_start_step=-1), "loss.self_supervision_start_step must be an integer >= 0"),
 ])
@@ -226,7 +231,7 @@ def test_one_training_step_with_the_switch_on_and_one_trace(_cache):
     from tests.train_helpers import make_step
     on = losses.LossConfig(self_supervision=0.3, self_supervision_crop=8, scales="finest")
     off = losses.LossConfig(scales="finest")
-    state, step, net, _, _ = make_step(model=TINY, loss_cfg=on, lr=1e-30)
+    state, step, net, _, _ = make_step(model=TINY, loss_cfg=on, lr=1e-30)  # params (nearly) unchanged
     state = _perturbed(state)
     cycles = _batch()
     before = train_step.TRACE_COUNTS["train_step"]
@@ -236,11 +241,12 @@ def test_one_training_step_with_the_switch_on_and_one_trace(_cache):
     assert int(m1["nonfinite"]) == 0 and np.isfinite(float(m1["loss"])) and int(s2["step"]) == 2
     ss = float(m1["loss/self_supervision"])
     assert ss > 0
-    _, step_off, _, _, _ = make_step(model=TINY, loss_cfg=off, lr=1e-30)
-    _, m_off = step_off(jax.tree.map(jnp.copy, state), cycles)
-    assert "loss/self_supervision" not in m_off
-    assert float(m1["loss"]) == pytest.approx(float(m_off["loss"]) + 0.3 * ss, rel=1e-5)
-    assert abs(float(m1["loss"]) - float(m_off["loss"])) > 1e-4
+    # the switch-off loss of the same params and batch (the loss alone: no gradient to compile)
+    x = cycle.batch_pair_inputs(cycles)
+    loss_off, t_off = jax.jit(lambda p: losses.cycle_loss(net(p, x), cycles, off))(state["params"])
+    assert "self_supervision" not in t_off
+    assert float(m1["loss"]) == pytest.approx(float(loss_off) + 0.3 * ss, rel=1e-5)
+    assert abs(float(m1["loss"]) - float(loss_off)) > 1e-4
     # the crop window is drawn from the state's rng: step 2 (a new rng, near-equal params) sees another window
     assert float(m2["loss/self_supervision"]) != pytest.approx(ss, rel=1e-4)
 
@@ -260,7 +266,3 @@ def test_micro_batched_step_equals_the_plain_step_with_the_switch_on(_cache):
     scale = max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(gp))
     for a, b in zip(jax.tree.leaves(gp), jax.tree.leaves(gm)):
         np.testing.assert_allclose(a, b, atol=1e-5 * max(1.0, scale))
-    # the student's share of the gradient is there: the same without the student differs
-    (_, _), g_off = jax.jit(lambda p, c: train_step.loss_and_grads(
-        p, c, net=net, loss_cfg=losses.LossConfig(scales="finest")))(params, cycles)
-    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(gp), jax.tree.leaves(g_off))) > 1e-4
