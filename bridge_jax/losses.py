@@ -31,8 +31,10 @@ Training switches beyond the paper (each a `LossConfig` field whose default is t
 `photometric="census"` (`census_loss`: soft census transform, its Hamming distance, robust penalty, instead of
 eq. 7's SSIM + L1), `scales="finest"` (only scale 0, the working size, instead of the sum over four scales),
 `smoothness_order=1` (first differences, weight `lambda_sm1`, edge constant `beta1`) and `occlusion_start_step`
-(flow pairs unmasked before that training step; the step comes from the train state). Gradient clipping is an
-optimiser setting (`train_step.OptimizerConfig.clip_grad_norm`).
+(flow pairs unmasked before that training step; the step comes from the train state) and `self_supervision`
+(`self_supervision_loss`: the full-frame maps, gradient stopped, supervise the maps of cropped frames where the
+teacher is confident; the train steps run the network on the crops and pass those maps as `Student`). Gradient
+clipping is an optimiser setting (`train_step.OptimizerConfig.clip_grad_norm`).
 
 Normalisation. A masked term sum(x * O) / sum(O) is kept per cycle as `Masked(mean(x * O), mean(O))`;
 `reduction="cycle"` (default) averages the per-cycle ratios over the cycles of a batch, `reduction="batch"`
@@ -100,6 +102,17 @@ class LossConfig:
     beta1: float = 10.0
     # Flow pairs use no occlusion mask (mask 1, as stereo pairs) before this training step; 0 = the paper.
     occlusion_start_step: int = 0
+    # Self-supervision (SelFlow, SMURF, Flow2Stereo; `self_supervision_loss`): the weight of a term in which the
+    # network's own scale-0 pixel maps on the full frames (the teacher: gradient stopped, only where its
+    # forward-backward check passes and its match lies inside the image) supervise its maps on the cycle's four
+    # frames cropped by `self_supervision_crop` px on every side (the student; a random window per cycle and
+    # step). Near the crop border the photometric loss is blind, the teacher is not. 0 = off (the paper); e.g.
+    # 0.3. The term is 0 before training step `self_supervision_start_step` (an untrained teacher teaches
+    # nothing). The crop must be a multiple of 4 (2 * crop keeps H and W multiples of 8), and the cropped size
+    # a valid working size of the model (resnet_md: 2 * crop a multiple of 64).
+    self_supervision: float = 0.0
+    self_supervision_start_step: int = 0
+    self_supervision_crop: int = 32
 
     def __post_init__(self):
         choices = {
@@ -118,6 +131,16 @@ class LossConfig:
                 raise ValueError(f"loss.{field} must be one of {allowed}, got {getattr(self, field)!r}")
         if not isinstance(self.occlusion_start_step, int) or self.occlusion_start_step < 0:
             raise ValueError(f"loss.occlusion_start_step must be an integer >= 0, got {self.occlusion_start_step!r}")
+        if not (isinstance(self.self_supervision, (int, float)) and not isinstance(self.self_supervision, bool)
+                and np.isfinite(self.self_supervision) and self.self_supervision >= 0):
+            raise ValueError(f"loss.self_supervision must be a number >= 0 (0 = off), got {self.self_supervision!r}")
+        if not isinstance(self.self_supervision_start_step, int) or self.self_supervision_start_step < 0:
+            raise ValueError(f"loss.self_supervision_start_step must be an integer >= 0, got "
+                             f"{self.self_supervision_start_step!r}")
+        c = self.self_supervision_crop
+        if not isinstance(c, int) or isinstance(c, bool) or c < 0 or (self.self_supervision > 0 and (c <= 0 or c % 4)):
+            raise ValueError(f"loss.self_supervision_crop must be a positive multiple of 4 (pixels cut from each side; "
+                             f"H - 2 * crop and W - 2 * crop must stay multiples of 8), got {c!r}")
         if self.two_warp != "none" and self.tasks != "flow_stereo":
             raise ValueError(f"loss.two_warp={self.two_warp!r} needs stereo and flow pairs (tasks='flow_stereo'), "
                              f"got tasks={self.tasks!r}")
@@ -500,6 +523,123 @@ def group_mean(rows, start: int, stop: int):
     return jax.tree.map(lambda x: jnp.mean(x[start:stop]), rows)
 
 
+# ------------------------------------------------------------------------ self-supervision (beyond the paper)
+class Student(NamedTuple):
+    """The student of the self-supervision term (`LossConfig.self_supervision`): the network's scale-0 pixel maps
+    of the cropped cycles and where each crop window lies in its cycle's frames."""
+
+    px: Any  # (B * 2P, H - 2c, W - 2c, 2), rows as the full-frame maps (`cycle.batch_pair_inputs` of the crops)
+    offsets: Any  # (B, 2) int32: (y, x) of each crop window's top-left pixel in the full frames, each in [0, 2c]
+
+
+def self_supervision_offsets(num_cycles: int, crop: int, rng=None):
+    """(B, 2) int32 crop offsets (y, x) in [0, 2 * crop]: uniform per cycle from `rng` (a PRNG key; the train
+    steps pass `fold_in(state["rng"], 1)`), or the centre window (crop, crop) when `rng` is None."""
+    if rng is None:
+        return jnp.full((num_cycles, 2), crop, jnp.int32)
+    return jax.random.randint(rng, (num_cycles, 2), 0, 2 * crop + 1, dtype=jnp.int32)
+
+
+def crop_cycles(cycles, offsets, crop: int):
+    """The student's frames: each cycle's four frames cut to the same (H - 2c, W - 2c) window at its offset.
+
+    Args:
+      cycles: (B, 4, H, W, 3); offsets: (B, 2) int32 (y, x), see `self_supervision_offsets`.
+    Returns:
+      (B, 4, H - 2c, W - 2c, 3). Pixel units are unchanged: a crop does not rescale correspondences.
+    """
+    _, _, h, w, ch = cycles.shape
+    size = (4, h - 2 * crop, w - 2 * crop, ch)
+    return jax.vmap(lambda c, o: jax.lax.dynamic_slice(c, (0, o[0], o[1], 0), size))(cycles, offsets)
+
+
+def self_supervision_mask(px, num_pairs: int, cfg: LossConfig):
+    """Where the teacher is trusted, per row: (2P, H, W, 1) float {0, 1}, no gradient.
+
+    1 where the forward-backward check passes (`geometry.forward_backward_occlusion`, paper eq. 6, with the
+    config's alpha1, alpha2 and norm; on stereo pairs too, which the photometric term leaves unmasked) AND the
+    match x + D lies inside the full image ([0, W - 1] x [0, H - 1]). Unlike `geometry.occlusion_mask` there is no
+    border band and no floor: a confident teacher is exactly what the border band is blind to.
+
+    Args:
+      px: (2P, H, W, 2) scale-0 pixel maps of one cycle (forward rows, then backward).
+    """
+    px = jax.lax.stop_gradient(px)
+    fwd, bwd = cyc.split_directions(px, num_pairs)
+    warped = geometry.warp(jnp.concatenate([bwd, fwd]), px)  # W(D', D), then W(D, D'): one gather
+    occ_f, occ_b = geometry.forward_backward_occlusion(fwd, bwd, warped[:num_pairs], warped[num_pairs:],
+                                                       alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
+                                                       warped_bw_norm=cfg.occlusion_norm == "warped")
+    h, w = px.shape[-3:-1]
+    x = jnp.arange(w, dtype=px.dtype)[None, :] + px[..., 0]
+    y = jnp.arange(h, dtype=px.dtype)[:, None] + px[..., 1]
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    return jax.lax.stop_gradient((1 - jnp.concatenate([occ_f, occ_b])) * inside[..., None].astype(px.dtype))
+
+
+SELF_SUPERVISION_EPS = 1e-6
+"""Added to the teacher-mask count that normalises the self-supervision term (an empty mask gives 0, not NaN)."""
+
+
+def self_supervision_penalty(d):
+    """The robust penalty of a student-teacher difference d (..., 2): (|d| + 0.01)^0.4 - 0.01^0.4 (the census
+    path's `robust_penalty` shifted to 0 at d = 0), averaged over the two channels; (..., 1)."""
+    return jnp.mean(robust_penalty(d) - 0.01**0.4, axis=-1, keepdims=True)
+
+
+def self_supervision_loss(teacher_px, student_px, offset, cfg: LossConfig) -> Masked:
+    """Self-supervision term of one cycle (beyond the paper; SelFlow / SMURF / Flow2Stereo):
+
+        L_self = sum(rho(S - crop(T)) * M) / (sum(M) + eps)
+
+    over all rows (both directions of every active pair) and pixels of the crop window. T = the full-frame maps
+    with stopped gradient (teacher), S = the maps of the cropped frames (student), crop = the student's window
+    (pixel units need no change), M = `self_supervision_mask` of T cropped to the window, rho =
+    `self_supervision_penalty`, eps = `SELF_SUPERVISION_EPS`.
+
+    Args:
+      teacher_px: (2P, H, W, 2) scale-0 pixel maps of the full frames.
+      student_px: (2P, H - 2c, W - 2c, 2) scale-0 pixel maps of the cropped frames (c = cfg.self_supervision_crop).
+      offset: (2,) int32 (y, x) of the window's top-left pixel in the full frames.
+    Returns:
+      Masked(sum(rho M) / N, (sum(M) + eps) / N) (N = the window's row-pixel count), reduced over cycles like
+      every other term (`reduce_over_cycles`).
+    """
+    rows, h, w, _ = teacher_px.shape
+    c = cfg.self_supervision_crop
+    want = (rows, h - 2 * c, w - 2 * c, 2)
+    if tuple(student_px.shape) != want:
+        raise ValueError(f"student maps must have shape {want} (the teacher's {tuple(teacher_px.shape)} cropped by "
+                         f"loss.self_supervision_crop={c} on each side), got {tuple(student_px.shape)}")
+    teacher = jax.lax.stop_gradient(teacher_px)
+    mask = self_supervision_mask(teacher, rows // 2, cfg)
+    window = lambda x: jax.lax.dynamic_slice(x, (0, offset[0], offset[1], 0), want[:3] + x.shape[-1:])
+    m = window(mask)
+    n = m.size
+    pen = self_supervision_penalty(student_px - window(teacher))
+    return Masked(jnp.sum(pen * m) / n, (jnp.sum(m) + SELF_SUPERVISION_EPS) / n)
+
+
+def _check_student(student: Student, num_cycles: int, hw, cfg: LossConfig) -> None:
+    c, rows = cfg.self_supervision_crop, cyc.rows_per_cycle(cfg.pairs)
+    want = (num_cycles * rows, hw[0] - 2 * c, hw[1] - 2 * c, 2)
+    if tuple(student.px.shape) != want:
+        raise ValueError(f"student maps must have shape {want} ({num_cycles} cycles of {rows} rows, the frames "
+                         f"cropped by loss.self_supervision_crop={c} on each side), got {tuple(student.px.shape)}")
+    if tuple(student.offsets.shape) != (num_cycles, 2):
+        raise ValueError(f"student offsets must have shape {(num_cycles, 2)} (y, x per cycle), got "
+                         f"{tuple(student.offsets.shape)}")
+
+
+def add_self_supervision(total, terms: dict, term, cfg: LossConfig, step=None):
+    """The total loss with the reduced self-supervision term added, and the terms with it as "self_supervision"
+    (unweighted; 0 before `cfg.self_supervision_start_step`; step None = after it) and the new "total"."""
+    if cfg.self_supervision_start_step > 0 and step is not None:
+        term = jnp.where(step >= cfg.self_supervision_start_step, term, jnp.zeros_like(term))
+    total = total + cfg.self_supervision * term
+    return total, dict(terms, self_supervision=term, total=total)
+
+
 # ----------------------------------------------------------------------------------- eq. 13: cycle loss
 class ScaleTerms(NamedTuple):
     """Every unweighted term of one cycle at one scale (`Masked` per cycle; scalars once reduced)."""
@@ -680,18 +820,21 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
     return total, terms
 
 
-def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None):
+def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None, student: Optional[Student] = None):
     """The training loss of a batch of cycles (paper eq. 13): `cycle_terms` vmapped over the cycles, reduced
-    over them (`cfg.reduction`), weighted by `total_loss`.
+    over them (`cfg.reduction`), weighted by `total_loss`; with `cfg.self_supervision > 0` plus that weight times
+    the `self_supervision_loss` of the full-frame scale-0 maps (teacher) and `student` (`add_self_supervision`).
 
     Args:
       maps: network output for `cycle.batch_pair_inputs(cycles, cfg.pairs)`: {"px", "frac"} tuples of
         per-scale (B * 2P, H_s, W_s, 2) maps (cycle-major).
       cycles: (B, 4, H, W, 3) frames in [0, 1]; a single cycle (4, H, W, 3) is a batch of one.
       pyramids: optional per-scale (B, 4, H_s, W_s, 3) frames (computed when None).
-      step: the training step, an int32 scalar (read only with `cfg.occlusion_start_step > 0`).
+      step: the training step, an int32 scalar (read only with `cfg.occlusion_start_step > 0` or
+        `cfg.self_supervision_start_step > 0`).
+      student: the self-supervision student (`Student`), needed exactly when `cfg.self_supervision > 0`.
     Returns:
-      (total scalar, dict of every term by name; see `total_loss`).
+      (total scalar, dict of every term by name; see `total_loss`, and "self_supervision" when it is on).
     """
     if cycles.ndim == 4:
         cycles = cycles[None]
@@ -702,6 +845,21 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None):
     n = maps["px"][0].shape[0]
     if n % b:
         raise ValueError(f"maps have {n} rows, not a multiple of the {b} cycles")
+    if (student is not None) != (cfg.self_supervision > 0):
+        raise ValueError("the student maps (`student`) are needed exactly when loss.self_supervision > 0, got "
+                         f"self_supervision={cfg.self_supervision} and student "
+                         f"{'given' if student is not None else None}")
+    if student is not None:
+        _check_student(student, b, cycles.shape[2:4], cfg)
     per_cycle = cyc.unbatch_maps(maps, b)
     terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p, step))(per_cycle, cycles, pyramids)
-    return total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)
+    total, named = total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)
+    if student is None:
+        return total, named
+    rows = cyc.rows_per_cycle(cfg.pairs)
+    teacher = per_cycle["px"][0]  # (B, 2P or 8, H, W, 2); as `_select_rows`, all 8 rows are accepted
+    if teacher.shape[1] != rows:
+        teacher = teacher[:, np.array(list(cfg.pairs) + [4 + k for k in cfg.pairs])]
+    students = student.px.reshape((b, rows) + student.px.shape[1:])
+    term = jax.vmap(lambda t, s, o: self_supervision_loss(t, s, o, cfg))(teacher, students, student.offsets)
+    return add_self_supervision(total, named, reduce_over_cycles(term, cfg.reduction), cfg, step)

@@ -14,6 +14,11 @@ micro-batch. Instead, per step (`MicroBatchedStep.phases` lists them):
 
 Cost: one extra network forward per step; memory: the activations of one micro-batch plus all maps.
 
+With self-supervision on (`LossConfig.self_supervision > 0`) the cropped cycles' pair inputs
+(`train_step.student_inputs`) are split, forwarded (only their scale-0 pixel maps are kept), given cotangents by
+the loss and pulled back the same way, in micro-batches of the same row count (a second shape of the forward and
+accumulate phases).
+
 Rows are split per device, so that every micro-batch stays evenly sharded over the ('data',) mesh: with D
 devices each holding L = B * 2P / D rows, micro-batch m is rows [m*k, (m+1)*k) of every device's shard.
 """
@@ -31,7 +36,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import cycle, losses
 from bridge_jax.network import Network
-from bridge_jax.train_step import apply_gradients, count_trace, sharding_mesh
+from bridge_jax.train_step import apply_gradients, count_trace, sharding_mesh, student_inputs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,22 +85,40 @@ def split(cycles, *, batches: MicroBatches):
     return batches.split(cycle.batch_pair_inputs(cycles, batches.pairs))
 
 
+def split_student(cycles, rng, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
+    """(micro-batches of the self-supervision student's pair inputs, crop offsets (B, 2)); `rng` = the state's
+    (None: centre crops)."""
+    count_trace("micro/split_student")
+    x, offsets = student_inputs(cycles, loss_cfg, rng)
+    return batches.split(x), offsets
+
+
 def forward(params, x, rows, *, net: Network):
     """Maps of one micro-batch; `rows` = `Network.static_rows` of its stereo pattern (static)."""
     count_trace("micro/forward")
     return net(params, x, rows)
 
 
-def loss_and_map_grads(map_parts, cycles, step, *, batches: MicroBatches, loss_cfg: losses.LossConfig):
-    """(loss, terms, d loss / d maps of each micro-batch) of the whole batch at training step `step` (or None)."""
+def forward_student(params, x, rows, *, net: Network):
+    """The scale-0 pixel maps of one micro-batch of the student's cropped pair inputs."""
+    count_trace("micro/forward_student")
+    return net(params, x, rows)["px"][0]
+
+
+def loss_and_map_grads(map_parts, cycles, step, student_parts=(), offsets=None, *, batches: MicroBatches,
+                       loss_cfg: losses.LossConfig):
+    """(loss, terms, d loss / d maps of each micro-batch, d loss / d student maps of each student micro-batch) of
+    the whole batch at training step `step` (or None); the student parts are () when self-supervision is off."""
     count_trace("micro/loss")
 
-    def objective(parts):
+    def objective(parts, sparts):
         maps = jax.tree.map(lambda *p: batches.merge(p), *parts)
-        return losses.cycle_loss(maps, cycles, loss_cfg, step=step)
+        student = losses.Student(batches.merge(sparts), offsets) if sparts else None
+        return losses.cycle_loss(maps, cycles, loss_cfg, step=step, student=student)
 
-    (loss, terms), dmaps = jax.value_and_grad(objective, has_aux=True)(map_parts)
-    return loss, terms, dmaps
+    (loss, terms), (dmaps, dstudent) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
+        map_parts, student_parts)
+    return loss, terms, dmaps, dstudent
 
 
 def zeros_like_params(params):
@@ -103,10 +126,12 @@ def zeros_like_params(params):
     return jax.tree.map(jnp.zeros_like, params)
 
 
-def accumulate(acc, params, x, dmaps, rows, *, net: Network):
-    """acc + the parameter gradient of one micro-batch (its forward again under `jax.vjp`, pulled back)."""
-    count_trace("micro/accumulate")
-    _, vjp = jax.vjp(lambda p: net(p, x, rows), params)
+def accumulate(acc, params, x, dmaps, rows, *, net: Network, student: bool = False):
+    """acc + the parameter gradient of one micro-batch (its forward again under `jax.vjp`, pulled back); with
+    `student`, of a student micro-batch (`dmaps` = the cotangent of its scale-0 pixel maps)."""
+    count_trace("micro/accumulate_student" if student else "micro/accumulate")
+    fn = (lambda p: net(p, x, rows)["px"][0]) if student else (lambda p: net(p, x, rows))
+    _, vjp = jax.vjp(fn, params)
     (g,) = vjp(dmaps)
     return jax.tree.map(jnp.add, acc, g)
 
@@ -132,6 +157,12 @@ class MicroBatchedStep:
         shard = lambda **kw: kw if sharded else {}  # jit's sharding arguments, only when there is a mesh
         self._split = jax.jit(functools.partial(split, batches=self.batches), **shard(in_shardings=(batch_sharding,)))
         self._forward = jax.jit(functools.partial(forward, net=net), static_argnums=(2,))
+        self.student = loss_cfg.self_supervision > 0
+        if self.student:
+            self._split_student = jax.jit(functools.partial(split_student, batches=self.batches, loss_cfg=loss_cfg))
+            self._forward_student = jax.jit(functools.partial(forward_student, net=net), static_argnums=(2,))
+            self._accumulate_student = jax.jit(functools.partial(accumulate, net=net, student=True),
+                                               donate_argnums=(0,), static_argnums=(4,))
         self._loss = jax.jit(functools.partial(loss_and_map_grads, batches=self.batches, loss_cfg=loss_cfg))
         self._zeros = jax.jit(zeros_like_params, **shard(out_shardings=param_sharding))
         self._accumulate = jax.jit(functools.partial(accumulate, net=net), donate_argnums=(0,), static_argnums=(4,))
@@ -148,21 +179,26 @@ class MicroBatchedStep:
         blocking on its output. `state` is donated to the last phase."""
         params = state["params"]
         xs = self._split(cycles)
-        yield "split", xs
+        xs_student, offsets = self._split_student(cycles, state.get("rng")) if self.student else ((), None)
+        yield "split", (xs, xs_student) if self.student else xs
         maps = [self._forward(params, x, self._rows(i)) for i, x in enumerate(xs)]
-        yield "forward", maps
-        loss, terms, dmaps = self._loss(tuple(maps), cycles, state.get("step"))
-        del maps
+        student = tuple(self._forward_student(params, x, self._rows(i)) for i, x in enumerate(xs_student))
+        yield "forward", (maps, student) if self.student else maps
+        loss, terms, dmaps, dstudent = self._loss(tuple(maps), cycles, state.get("step"), student, offsets)
+        del maps, student
         yield "loss", (loss, terms, dmaps)
         acc = self._zeros(params)
         for i, (x, dm) in enumerate(zip(xs, dmaps)):
             acc = self._accumulate(acc, params, x, dm, self._rows(i))
+        for i, (x, dm) in enumerate(zip(xs_student, dstudent)):
+            acc = self._accumulate_student(acc, params, x, dm, self._rows(i))
         yield "accumulate", acc
         yield "update", self._update(state, acc, loss, terms)
 
     def loss_and_grads(self, params, cycles, step=None):
         """((loss, terms), grads) of the batch at training step `step` (None: as `losses.cycle_loss` reads None, after
-        any occlusion start step), computed maps-first (the step without its update)."""
+        any occlusion or self-supervision start step), computed maps-first (the step without its update); the
+        self-supervision crops are the centre windows, as `train_step.loss_and_grads` without `rng`."""
         out = {}
         state = {"params": params} if step is None else {"params": params, "step": jnp.asarray(step, jnp.int32)}
         for name, value in self.phases(state, cycles):

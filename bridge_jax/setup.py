@@ -191,6 +191,26 @@ def resolve_micro_batch(micro_batch: int, rows_per_device: int, backend: str) ->
     return 2 if backend == "cpu" and rows_per_device % 2 == 0 and rows_per_device > 2 else 0
 
 
+def _check_self_supervision_crop(name: str, height: int, width: int, crop: int) -> None:
+    """The self-supervision student runs the model on the working size less 2 * crop: that must be a valid
+    working size of the model too (2 * crop a multiple of its input multiple, and big enough)."""
+    def fits(c):
+        try:
+            models.check_working_size(name, height - 2 * c, width - 2 * c)
+            return True
+        except ValueError:
+            return False
+
+    if fits(crop):
+        return
+    multiple = models.INPUT_MULTIPLE[name]
+    ok = [c for c in range(multiple // 2, min(height, width) // 2, multiple // 2) if fits(c)]
+    hint = f"e.g. {ok[0]}" if ok else f"none fits the working size {height}x{width}"
+    raise ConfigError(f"config.loss.self_supervision_crop={crop}: the student's crop of the {height}x{width} working "
+                      f"size is {height - 2 * crop}x{width - 2 * crop}, not a working size of model {name} (2 * crop "
+                      f"must be a multiple of {multiple} and leave a big enough size); {hint}")
+
+
 def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = None,
           num_processes: Optional[int] = None) -> Run:
     """Check a training config and return its `Run` (raises ConfigError naming the option).
@@ -236,6 +256,9 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
         loss_cfg = losses.LossConfig.from_dict(loss_values)
     except (ValueError, TypeError) as e:
         raise ConfigError(f"config.loss: {e}") from e
+    if loss_cfg.self_supervision > 0:
+        _check_self_supervision_crop(model_cfg["name"], int(fields["height"]), int(fields["width"]),
+                                     loss_cfg.self_supervision_crop)
     data = _typed(DataConfig, data_values, "data")
     try:
         optimizer = OptimizerConfig(**optimizer_values)

@@ -8,7 +8,8 @@ and one training step on a batch of cycles (B, 4, H, W, 3) float32 in [0, 1] (`t
 
 1. the B * 2P ordered pair inputs (`cycle.batch_pair_inputs`; P = 4 pairs for flow+stereo),
 2. the network on all of them (forward and backward maps, 4 scales),
-3. the cycle loss (`losses.cycle_loss`, vmapped over cycles) and its gradient,
+3. the cycle loss (`losses.cycle_loss`, vmapped over cycles) and its gradient (with self-supervision on, the
+   network also runs on the cropped cycles: `student_inputs`),
 4. Adam with the step-based MultiStepLR schedule, and
 5. a guard: a non-finite loss, gradient, update or new parameter leaves the state unchanged (the step is "skipped").
 
@@ -130,14 +131,34 @@ def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     return new_state, metrics
 
 
-def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig, step=None):
+def crop_key(rng):
+    """The PRNG key of a step's self-supervision crop windows, from the state's `rng` (independent of the
+    `fold_in(rng, 0)` the next state gets)."""
+    return None if rng is None else jax.random.fold_in(rng, 1)
+
+
+def student_inputs(cycles, loss_cfg: losses.LossConfig, rng=None):
+    """(pair inputs of the cropped cycles (B * 2P, H - 2c, W - 2c, 6), crop offsets (B, 2)) of the
+    self-supervision student: a random window per cycle from `rng` (the state's), the centre one when None."""
+    c = loss_cfg.self_supervision_crop
+    offsets = losses.self_supervision_offsets(cycles.shape[0], c, crop_key(rng))
+    return cycle.batch_pair_inputs(losses.crop_cycles(cycles, offsets, c), loss_cfg.pairs), offsets
+
+
+def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig, step=None, rng=None):
     """((loss, terms), d loss / d params) of a batch of cycles (B, 4, H, W, 3), the whole batch at once; `step`
-    (int32 scalar) is the training step the loss's step-dependent switches read."""
+    (int32 scalar) is the training step the loss's step-dependent switches read. With self-supervision on
+    (`loss_cfg.self_supervision > 0`) the network also runs on the cropped cycles (`student_inputs`; `rng` = the
+    state's, None = centre crops) and the loss compares those maps with the full-frame ones."""
     x = cycle.batch_pair_inputs(cycles, loss_cfg.pairs)
     is_stereo = cycle.row_is_stereo(loss_cfg.pairs, x.shape[0])
+    student = loss_cfg.self_supervision > 0
+    if student:
+        x_crop, offsets = student_inputs(cycles, loss_cfg, rng)
 
     def objective(p):
-        return losses.cycle_loss(net(p, x, is_stereo), cycles, loss_cfg, step=step)
+        s = losses.Student(net(p, x_crop, is_stereo)["px"][0], offsets) if student else None
+        return losses.cycle_loss(net(p, x, is_stereo), cycles, loss_cfg, step=step, student=s)
 
     return jax.value_and_grad(objective, has_aux=True)(params)
 
@@ -145,7 +166,8 @@ def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig,
 def train_step(state: dict, cycles, *, net: Network, loss_cfg: losses.LossConfig, tx, schedule):
     """One training step: `(state, cycles (B, 4, H, W, 3)) -> (new_state, metrics)` (a pure function)."""
     count_trace("train_step")
-    (loss, terms), grads = loss_and_grads(state["params"], cycles, net=net, loss_cfg=loss_cfg, step=state["step"])
+    (loss, terms), grads = loss_and_grads(state["params"], cycles, net=net, loss_cfg=loss_cfg, step=state["step"],
+                                          rng=state["rng"])
     return apply_gradients(state, loss, terms, grads, tx, schedule)
 
 
@@ -167,5 +189,5 @@ def sharding_mesh(sharding_tree) -> jax.sharding.Mesh:
 
 
 __all__ = ["TRACE_COUNTS", "OptimizerConfig", "lr_schedule", "make_optimizer", "create_train_state",
-           "apply_gradients", "loss_and_grads", "train_step", "make_train_step",
+           "apply_gradients", "crop_key", "student_inputs", "loss_and_grads", "train_step", "make_train_step",
            "sharding_mesh"]
