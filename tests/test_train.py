@@ -21,6 +21,7 @@ import pytest
 from bridge_jax import checkpointing, setup, train, train_step
 from bridge_jax.configs import default as default_config
 from bridge_jax.micro_batch import MicroBatchedStep
+from bridge_jax.workdir import STATUS_JSON
 from tests.train_helpers import (H, W, REPO, enable_compilation_cache, make_step, plain_loss_and_grads, subprocess_env,
                                  tiny_config, train_cli)
 
@@ -371,7 +372,7 @@ def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
     assert "interrupted; checkpoint saved" in out
     steps = [int(s) for s in os.listdir(os.path.join(wd, "checkpoints"))]
     assert len(steps) == 1 and steps[0] >= 2
-    status = json.load(open(os.path.join(wd, train.STATUS_JSON)))
+    status = json.load(open(os.path.join(wd, STATUS_JSON)))
     assert status == {**status, "status": "interrupted", "step": steps[0], "signal": int(signal.SIGTERM)}
 
 

@@ -16,6 +16,7 @@ import optax
 import pytest
 
 from bridge_jax import train, train_step
+from bridge_jax.workdir import STATUS_JSON, truncate_metrics
 from tests.train_helpers import enable_compilation_cache, subprocess_env, tiny_config
 
 
@@ -123,9 +124,9 @@ def test_truncate_metrics_drops_later_steps_and_torn_lines(tmp_path):
     lines = [json.dumps({"step": s, "kind": k}) for s, k in ((1, "train"), (2, "train"), (2, "val"), (3, "train"),
                                                              (4, "train"))]
     path.write_text("\n".join(lines) + "\n" + '{"step": 5, "ki')
-    assert train.truncate_metrics(str(path), 2) == 3
+    assert truncate_metrics(str(path), 2) == 3
     assert [(r["step"], r["kind"]) for r in _jsonl(path)] == [(1, "train"), (2, "train"), (2, "val")]
-    assert train.truncate_metrics(str(path), 2) == 0
+    assert truncate_metrics(str(path), 2) == 0
 
 
 def test_resume_after_lost_steps_and_rerun_of_a_finished_run_do_not_repeat_records(tmp_path):
@@ -141,7 +142,7 @@ def test_resume_after_lost_steps_and_rerun_of_a_finished_run_do_not_repeat_recor
     recs = _jsonl(os.path.join(wd, "metrics.jsonl"))
     assert [r["step"] for r in recs if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
     assert [r["step"] for r in recs if r["kind"] == "val"] == [6]
-    status = json.load(open(os.path.join(wd, train.STATUS_JSON)))
+    status = json.load(open(os.path.join(wd, STATUS_JSON)))
     assert status["status"] == "finished" and status["step"] == 6
 
 
@@ -186,7 +187,7 @@ def test_stop_request_skips_the_validation_of_that_step(tmp_path, monkeypatch):
     recs = _jsonl(os.path.join(wd, "metrics.jsonl"))
     assert [r["step"] for r in recs if r["kind"] == "val"] == [1]
     assert sorted(os.listdir(os.path.join(wd, "checkpoints"))) == ["2"]
-    assert json.load(open(os.path.join(wd, train.STATUS_JSON)))["status"] == "interrupted"
+    assert json.load(open(os.path.join(wd, STATUS_JSON)))["status"] == "interrupted"
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -208,7 +209,7 @@ def test_cli_by_name_from_another_directory_is_quiet_and_says_what_it_runs(tmp_p
     start = [line for line in r.stdout.splitlines() if line.startswith("train: ")]
     assert len(start) == 1 and "config default:local" in start[0] and "data synthetic: 8 cycles" in start[0]
     assert "2 cpu devices" in start[0] and str(wd) in start[0]
-    assert json.load(open(wd / train.STATUS_JSON))["status"] == "finished"
+    assert json.load(open(wd / STATUS_JSON))["status"] == "finished"
 
 
 # --------------------------------------------------------------------------------------------------------

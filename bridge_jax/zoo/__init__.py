@@ -215,7 +215,7 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     work/demo/train`). The json records the run's config so a test notices when the config moved on."""
     import io
 
-    from bridge_jax import checkpointing, files, train  # train imports this module: import it here, not on top
+    from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
 
     workdir = Path(workdir).absolute()
     cfg, params = checkpointing.load_params(workdir)
@@ -227,7 +227,7 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     data = buf.getvalue()
     meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
             "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
-            "validation": validation if validation is not None else train.last_validation(str(workdir))}
+            "validation": validation if validation is not None else run_workdir.last_validation(str(workdir))}
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
     files.write_json(js, meta)
