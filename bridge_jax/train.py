@@ -10,7 +10,8 @@ r"""Training: `python -m bridge_jax.train --config=NAME[:arg] --workdir=DIR [--c
 
 `--config` is a config shipped in the package, by name from any directory (listed below; `:arg` picks a
 variant, e.g. `full2:local`), or the path of a Python file with `get_config(arg)`. `--config.KEY=VALUE`
-overrides any field (dotted, Python literals). A run re-started with the same workdir resumes where it stopped.
+overrides any field (dotted, Python literals); `--list-config [NAME]` prints every field of a config with its
+value and meaning. A run re-started with the same workdir resumes where it stopped.
 
 One run, top to bottom (sections of `train_and_evaluate`): parse and check the config (`setup.parse`) and build
 the data pipeline (nothing is written to the workdir before every input is validated), create model +
@@ -103,7 +104,7 @@ def _validation_data(run: setup.Run):
     """What validation runs on: ("synthetic", frames with exact ground truth), ("own", (N, 4, H, W, 3) held-out
     cycles of `config.data.val_dir`, scored photometrically), or None when validation is off. Read before the
     workdir is written, so a bad `val_dir` is one error and nothing else."""
-    if not run.eval.enabled:
+    if not run.validates:
         return None
     if run.data.val_dir:
         try:
@@ -223,7 +224,7 @@ class _NonFiniteGuard:
             last = self.ckpt.latest_step()
             where = f"{self.ckpt.directory}/{last}" if last is not None else "none saved yet"
             raise TrainingDiverged(f"stopping: {self.in_row} non-finite steps in a row at step {step} "
-                                   f"(config.max_nonfinite_in_row={self.max_in_row}); last good checkpoint: {where}")
+                                   f"(config.loop.max_nonfinite_in_row={self.max_in_row}); last good checkpoint: {where}")
         return True
 
 
@@ -412,9 +413,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 bar.update(1)
                 if stop.received is not None:  # no long phase (validation) once asked to stop
                     continue
-                if val_data and run.eval.every > 0 and step % run.eval.every == 0 and step < num_steps:
+                if val_data and loop.eval_every > 0 and step % loop.eval_every == 0 and step < num_steps:
                     val = run_validation(step)
-                elif is_main and run.eval.image_every > 0 and step % run.eval.image_every == 0 and val_data:
+                elif is_main and loop.image_every > 0 and step % loop.image_every == 0 and val_data:
                     run_validation(step, log_metrics=False, first_only=True)
 
             if interrupted:
@@ -500,9 +501,12 @@ def _config_epilog() -> str:
 def build_parser():
     p = cli.make_parser("bridge_jax.train", __doc__)
     p.epilog = (p.epilog or "") + "\n\n" + _config_epilog()
-    p.add_argument("--config", required=True, metavar="NAME[:arg]|FILE.py[:arg]",
-                   help=f"training config: a name ({', '.join(configs.names())}) or a Python file with get_config()")
-    p.add_argument("--workdir", required=True, help="folder for checkpoints, logs and metrics (resumed if it has any)")
+    p.add_argument("--config", metavar="NAME[:arg]|FILE.py[:arg]",
+                   help=f"training config (required): a name ({', '.join(configs.names())}) or a Python file with "
+                        "get_config()")
+    p.add_argument("--workdir", help="folder for checkpoints, logs and metrics (required; resumed if it has any)")
+    p.add_argument("--list-config", nargs="?", const="default", default=None, metavar="NAME",
+                   help="print every field of config NAME (default: default) with its value and meaning, then exit")
     p.add_argument("--verbosity", default="warning", choices=("debug", "info", "warning", "error"),
                    help="log level of the libraries (absl, orbax, grain); info shows orbax's checkpoint messages")
     cli.add_debug_flag(p)
@@ -567,6 +571,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except ConfigError as e:
         return cli.report_error(e, debug=debug)
     args = parser.parse_args(rest)
+    if args.list_config is not None:
+        try:
+            print(setup.list_config(load_config(args.list_config, items)))
+        except ConfigError as e:
+            return cli.report_error(e, code=EXIT_BAD_INPUT, debug=args.debug)
+        return EXIT_FINISHED
+    if not args.config or not args.workdir:
+        parser.error("the following arguments are required: " + ", ".join(
+            f"--{n}" for n in ("config", "workdir") if not getattr(args, n)))
     _set_verbosity(args.verbosity)
     try:
         config = load_config(args.config, items)

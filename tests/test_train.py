@@ -83,8 +83,8 @@ def _record_batches(monkeypatch):
 def fixed_batch_run(tmp_path_factory):
     """6 steps on a fixed batch (2 cycles, no augmentation, lr 1e-3), validation and pictures at the end."""
     workdir = str(tmp_path_factory.mktemp("run") / "wd")
-    cfg = tiny_config(**{"num_train_steps": 6, "lr": 1e-3, "data.synthetic_num": 2, "data.augment": False,
-                         "eval_every": 0, "image_every": 3})
+    cfg = tiny_config(**{"loop.num_train_steps": 6, "lr": 1e-3, "data.synthetic_num": 2, "data.augment": False,
+                         "loop.eval_every": 0, "loop.image_every": 3})
     before = train_step.TRACE_COUNTS["train_step"]
     result = train.train_and_evaluate(cfg, workdir)
     return workdir, result, train_step.TRACE_COUNTS["train_step"] - before
@@ -359,7 +359,8 @@ def _train_steps_logged(workdir):
 
 def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
     wd = str(tmp_path / "wd")
-    proc = subprocess.Popen(train_cli(wd, "--config.num_train_steps=10000", "--config.checkpoint_every=10000"),
+    proc = subprocess.Popen(train_cli(wd, "--config.loop.num_train_steps=10000",
+                                      "--config.loop.checkpoint_every=10000"),
                             env=subprocess_env(8), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _wait_for(lambda: _train_steps_logged(wd) >= 2, proc, 400), proc.communicate()[1][-3000:]
@@ -380,7 +381,7 @@ def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
 def test_sigkill_then_restart_resumes(tmp_path):
     """Killed hard mid-run (async checkpoints in flight), restarted: same final params as an unbroken run."""
     wd = str(tmp_path / "wd")
-    args = ("--config.num_train_steps=8", "--config.checkpoint_every=2")
+    args = ("--config.loop.num_train_steps=8", "--config.loop.checkpoint_every=2")
     proc = subprocess.Popen(train_cli(wd, *args), env=subprocess_env(8), cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -409,7 +410,7 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    common = ("--config.num_train_steps=2", "--config.data.augment=False", "--config.checkpoint_every=2",
+    common = ("--config.loop.num_train_steps=2", "--config.data.augment=False", "--config.loop.checkpoint_every=2",
               "--config.distributed.enabled=True", f"--config.distributed.coordinator_address=127.0.0.1:{port}",
               "--config.distributed.num_processes=2", "--config.num_devices=-1")
     wd = str(tmp_path / "multi")
@@ -420,8 +421,8 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err[-3000:]
     # the same run in one process over 2 devices (= the same global batches: augmentation off)
-    r = subprocess.run(train_cli(str(tmp_path / "single"), "--config.num_train_steps=2", "--config.data.augment=False",
-                                 "--config.checkpoint_every=2"), env=subprocess_env(2), cwd=REPO,
+    r = subprocess.run(train_cli(str(tmp_path / "single"), "--config.loop.num_train_steps=2",
+                                 "--config.data.augment=False", "--config.loop.checkpoint_every=2"), env=subprocess_env(2), cwd=REPO,
                        capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     _, multi = checkpointing.load_params(wd)

@@ -198,8 +198,8 @@ def test_cli_by_name_from_another_directory_is_quiet_and_says_what_it_runs(tmp_p
     wd = tmp_path / "wd"
     cmd = [sys.executable, "-m", "bridge_jax.train", "--config=default:local", f"--workdir={wd}",
            "--config.height=64", "--config.width=128", "--config.num_devices=2", "--config.global_batch=2",
-           "--config.micro_batch=0", "--config.num_train_steps=2", "--config.checkpoint_every=1",
-           "--config.eval_every=-1", "--config.image_every=-1", "--config.progress_bar=False",
+           "--config.micro_batch=0", "--config.loop.num_train_steps=2", "--config.loop.checkpoint_every=1",
+           "--config.loop.eval_every=-1", "--config.loop.image_every=-1", "--config.loop.progress_bar=False",
            "--config.data.synthetic_num=8", "--config.data.prefetch=0"]
     r = subprocess.run(cmd, cwd=tmp_path, env=subprocess_env(2), capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]

@@ -43,10 +43,10 @@ def get_config(arg=None):
     c.global_batch = 2
     c.micro_batch = 0  # a small model: one jitted step beats many small calls
     c.lr = 1e-3
-    c.num_train_steps = 2500
+    c.loop.num_train_steps = 2500
     # The paper's step schedule, compressed: 250-step "epochs", so the lr halves at the starts of epochs 4 and 7
     # (steps 1000 and 1750).
-    c.steps_per_epoch = 250
+    c.loop.steps_per_epoch = 250
     if "paper_loss" not in opts:
         # The ablation's pick (experiments/results/ablation.md, 1,000-step runs): every loss switch left at the
         # paper's setting (census, finest-only, 1st-order smoothness, a late occlusion start and coordinate
@@ -55,22 +55,15 @@ def get_config(arg=None):
         c.clip_grad_norm = 1.0
     c.data.synthetic_num = 20_000
     c.data.num_workers = 0
-    c.checkpoint_every = 500
-    c.keep_checkpoints = 2
-    c.log_every = 25
-    c.image_every = 250
-    c.eval_every = 250
+    c.loop.update(checkpoint_every=500, keep_checkpoints=2, log_every=25, image_every=250, eval_every=250)
     c.eval.num_samples = 16
     c.eval.batch = 8
     if "long" in opts:  # the same recipe at 4x the pixels and 2.4x the steps
         c.height, c.width = 128, 256
-        c.num_train_steps = 6000
-        c.steps_per_epoch = 600  # lr halves at steps 2400 and 4200
-        c.checkpoint_every = c.eval_every = 500
-        c.image_every = 500
+        c.loop.update(num_train_steps=6000, steps_per_epoch=600,  # lr halves at steps 2400 and 4200
+                      checkpoint_every=500, eval_every=500, image_every=500)
         c.eval.batch = 4
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
-        c.num_train_steps = 30
-        c.checkpoint_every = c.eval_every = c.image_every = 15
+        c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4
     return c

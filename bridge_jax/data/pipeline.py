@@ -242,19 +242,19 @@ class DataConfig:
     num_epochs: passes over the source (None = forever, the trainer's choice).
     """
 
-    source: str = "synthetic"
-    data_dir: str = ""
-    split: str = ""
-    augment: bool = True
-    num_workers: int = 0
-    prefetch: int = 2
-    read_threads: int = 1
-    worker_buffer_size: int = 2
-    max_skip: int = 100
-    synthetic_num: int = DEFAULT_SYNTHETIC_NUM
-    num_epochs: Optional[int] = None
-    prescan: bool = True
-    val_dir: str = ""
+    source: str = "synthetic"  # synthetic | kitti_raw | folder | tfds
+    data_dir: str = ""  # the folder of kitti_raw | folder | tfds
+    split: str = ""  # kitti_raw: all | kitti | eigen | a list file; tfds: the builder config
+    augment: bool = True  # the paper's augmentation (flip, gamma, brightness, colour)
+    num_workers: int = 0  # grain worker processes (0 = decode in the training process)
+    prefetch: int = 2  # grain read-ahead buffer (elements)
+    read_threads: int = 1  # grain read threads
+    worker_buffer_size: int = 2  # batches buffered per worker process
+    max_skip: int = 100  # consecutive unreadable cycles tolerated before the folder is reported broken
+    synthetic_num: int = DEFAULT_SYNTHETIC_NUM  # synthetic cycles per epoch (fixes the shuffle period)
+    num_epochs: Optional[int] = None  # passes over the source (None = forever, the trainer's choice)
+    prescan: bool = True  # read every image header before training (folder | kitti_raw)
+    val_dir: str = ""  # held-out frames of your own for validation ("" = synthetic validation)
 
     def __post_init__(self):
         if self.source not in SOURCES:
