@@ -103,7 +103,7 @@ class LossConfig:
 
     def __post_init__(self):
         choices = {
-            "tasks": cyc.TASKS,
+            "tasks": cyc.TASK_SETS,
             "two_warp": TWO_WARP_TYPES,
             "two_warp_target": ("reconstruction", "image"),
             "two_warp_weighting": ("paper", "upstream"),

@@ -425,7 +425,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 val = last_validation(workdir)
             elif val_data:
                 val = run_validation(step)
-            skips = pipeline.skip_report()
+            skips = dataset.skips.report()
             if is_main and skips.get("cycles"):
                 logger.record(step, "data_skips", skips)
                 print(f"data: {skips['cycles']} cycles skipped (unreadable or inconsistent files), e.g. "
@@ -444,7 +444,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
             "nonfinite_total": guard.total, "last_metrics": {k: scalar(v) for k, v in last_metrics.items()},
             "validation": val, "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
-            "skipped_data": pipeline.skip_report(), "state": state}
+            "skipped_data": dataset.skips.report(), "state": state}
 
 
 def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:

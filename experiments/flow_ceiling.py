@@ -168,7 +168,7 @@ def matching(args) -> None:
             return s["cycle"][0 if replaced else k]
 
         out[f"disp_epe_{name}"] = mean_epe(
-            val, lambda s: -pred.predict_pair(s["cycle"][0], image_b(s, 1), task="stereo")[..., 0], "disparity")
+            val, lambda s: pred.predict_pair(s["cycle"][0], image_b(s, 1), task="stereo"), "disparity")
         out[f"flow_vs_zero_{name}"] = flow_ratio(val, lambda s: pred.predict_pair(s["cycle"][0], image_b(s, 2), task="flow"))
     out["zero_disp_epe"] = mean_epe(val, zero_disparity, "disparity")
     print(json.dumps({"what": "matching", "workdir": args.workdir, "val_samples": len(val), **out}))

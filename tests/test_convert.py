@@ -200,7 +200,7 @@ def test_round_trip_first_layers_match_numpy(tmp_path, layout):
     out = tmp_path / "converted"
     assert convert.main(["--from", str(src), "--out", str(out)]) == 0
     assert not marker.exists()
-    cfg, params = checkpointing.load_params(out)
+    cfg, params = checkpointing.read_params(out)
     assert cfg["name"] == "resnet_md_tiny"
     # bridge_jax forward (NHWC) vs numpy forward in PyTorch layout straight from the state dict
     x = rng.uniform(size=(1, 6, 64, 128))

@@ -115,7 +115,7 @@ def test_train_and_evaluate_end_to_end(fixed_batch_run):
     assert len(os.listdir(os.path.join(workdir, "images"))) >= 2
     assert traces == 1  # one trace for the whole run
     # the checkpoint is readable by the params-only loader (evaluate/export path)
-    cfg, params = checkpointing.load_params(workdir)
+    cfg, params = checkpointing.read_params(workdir)
     assert cfg["name"] == "resnet_md_tiny"
     assert _params_close(params, result["state"]["params"], 0.0)
 
@@ -396,7 +396,7 @@ def test_sigkill_then_restart_resumes(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Resuming from" in r.stdout
     ref = train.train_and_evaluate(tiny_config(num_train_steps=8), str(tmp_path / "ref"))
-    _, params = checkpointing.load_params(wd)
+    _, params = checkpointing.read_params(wd)
     assert _params_close(params, ref["state"]["params"], 1e-6)
 
 
@@ -425,8 +425,8 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
                                  "--config.data.augment=False", "--config.loop.checkpoint_every=2"), env=subprocess_env(2), cwd=REPO,
                        capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
-    _, multi = checkpointing.load_params(wd)
-    _, single = checkpointing.load_params(str(tmp_path / "single"))
+    _, multi = checkpointing.read_params(wd)
+    _, single = checkpointing.read_params(str(tmp_path / "single"))
     assert _params_close(multi, single, 1e-5)
     data_files = os.listdir(os.path.join(wd, "checkpoints", "2", "data"))
     assert "process_0-of-2.json" in data_files and "process_1-of-2.json" in data_files

@@ -172,7 +172,7 @@ def load_shipped(name: str) -> tuple[dict, dict]:
 
 
 def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
-    """`checkpointing.load_params` that also takes a registry name: (model config, params)."""
+    """`checkpointing.read_params` that also takes a registry name: (model config, params)."""
     from bridge_jax import checkpointing
 
     if is_name(spec):
@@ -182,7 +182,7 @@ def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
             cfg, params = load_shipped(e.name)
             return cfg, _map(params, lambda a: jnp.asarray(a, jnp.float32))
         spec = local_checkpoint(e.name)
-    return checkpointing.load_params(spec)
+    return checkpointing.read_params(spec)
 
 
 def _map(tree, fn):
@@ -211,14 +211,14 @@ def resolve_path(spec: str | os.PathLike) -> str:
 
 def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None) -> Path:
     """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
-    config changes, retrain with `make demo` and run `python -m bridge_jax.zoo build demo --from
+    config changes, retrain with `make demo` and run `bridge-zoo build demo --from
     work/demo/train`). The json records the run's config so a test notices when the config moved on."""
     import io
 
     from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
 
     workdir = Path(workdir).absolute()
-    cfg, params = checkpointing.load_params(workdir)
+    cfg, params = checkpointing.read_params(workdir)
     checkpointing.check_finite_params(params, str(workdir))
     run_cfg = json.loads((workdir / checkpointing.CONFIG_JSON).read_text())
     step = Path(checkpointing.find_train_step_dir(workdir)).name
