@@ -85,8 +85,7 @@ class LossConfig:
     mask_floor: float = 1e-3  # smallest mask sum a masked mean divides by
     smooth_scale: float = 1.0 / 20.0  # the pixel map is scaled by this before the smoothness term (upstream)
     num_scales: int = 4  # pyramid scales of the network's maps
-    # ---- training switches beyond the paper (each default is the paper's behaviour; measured in
-    # experiments/results/ablation.md)
+    # ---- training switches beyond the paper (each default is the paper's behaviour)
     # Photometric term: the paper's SSIM + L1 mix, or the census transform (7x7 soft ternary census, its soft
     # Hamming distance, robust penalty (|x| + 0.01)^0.4; DDFlow/UFlow), robust to brightness changes.
     photometric: str = "ssim_l1"  # photometric error: ssim_l1 (paper) | census

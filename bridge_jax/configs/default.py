@@ -43,7 +43,7 @@ def get_config(arg=None):
 
     # Top level: working size, batch, seed, devices, compute (setup.RunOptions). `separate_networks` = the
     # paper's "without sharing weights" ablation. `remat`: same gradients; on XLA:CPU neither policy saved memory
-    # (experiments/results/perf.md), on accelerators it can. `conv_weight_grad` "auto" = on XLA:CPU one matmul per
+    # (measured with bridge-bench), on accelerators it can. `conv_weight_grad` "auto" = on XLA:CPU one matmul per
     # kernel tap where that is faster than XLA's own backward (>= 64 input channels) and XLA's in batch chunks for
     # the 7x7 stem, XLA's elsewhere and on GPU/TPU; same gradients to float32 rounding. `micro_batch` -1 = auto: 2
     # on CPU, where a Python loop of small jitted calls is faster and much leaner than one big jit, 0 elsewhere.
