@@ -1,10 +1,10 @@
 """Evaluation on KITTI 2015 / 2012, the Eigen split, the built-in synthetic set or any KITTI-layout folder.
 
-    python -m bridge_jax.evaluate --checkpoint CKPT --dataset kitti2015 --data-dir ~/data/data_scene_flow
+    bridge-evaluate --checkpoint CKPT --dataset kitti2015 --data-dir ~/data/data_scene_flow
     # the shipped demo model (or your own `make demo` run: --checkpoint work/demo/train) on the synthetic set
-    python -m bridge_jax.evaluate --checkpoint demo --dataset synthetic --data-dir work/demo/val_data --out eval/
+    bridge-evaluate --checkpoint demo --dataset synthetic --data-dir work/demo/val_data --out eval/
     # the baselines alone, on the first 20 frames
-    python -m bridge_jax.evaluate --dataset kitti2015 --data-dir ~/data/data_scene_flow --max-frames 20
+    bridge-evaluate --dataset kitti2015 --data-dir ~/data/data_scene_flow --max-frames 20
 
 The model runs on each frame at the working size (default: the size a training workdir was trained at, else
 256×512 = H×W like the paper), one compiled function per working size and batch, and its maps are brought to the

@@ -1,7 +1,7 @@
 """Export the inference network to a serialized StableHLO artifact (`jax.export`), weights baked in.
 
-    python -m bridge_jax.export --checkpoint demo --out demo.stablehlo
-    python -m bridge_jax.export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
+    bridge-export --checkpoint demo --out demo.stablehlo
+    bridge-export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
                                 [--dtype float32|bfloat16] [--task flow|stereo]
 
 The exported function is the predictor's network (`bridge_jax.inference.Predictor`) at its working size: it maps

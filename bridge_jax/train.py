@@ -1,12 +1,12 @@
-r"""Training: `python -m bridge_jax.train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALUE ...]`.
+r"""Training: `bridge-train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALUE ...]`.
 
-    python -m bridge_jax.train --config=demo --workdir=work/demo          # the README's demo model (~11 min, CPU)
-    python -m bridge_jax.train --config=default --workdir=work/default \
+    bridge-train --config=demo --workdir=work/demo          # the README's demo model (~11 min, CPU)
+    bridge-train --config=default --workdir=work/default \
         --config.data.source=kitti_raw --config.data.data_dir=/data/kitti_raw --config.global_batch=8
-    python -m bridge_jax.train --config=demo --workdir=work/mine \
+    bridge-train --config=demo --workdir=work/mine \
         --config.data.source=folder --config.data.data_dir=my_video \
         --config.data.val_dir=my_video_heldout --config.init_from=demo  # fine-tune the shipped model on your video
-    python -m bridge_jax.train --config=my_config.py:arg --workdir=DIR    # a config file of your own
+    bridge-train --config=my_config.py:arg --workdir=DIR    # a config file of your own
 
 `--config` is a config shipped in the package, by name from any directory (listed below; `:arg` picks a
 variant, e.g. `full2:local`), or the path of a Python file with `get_config(arg)`. `--config.KEY=VALUE`
@@ -453,8 +453,11 @@ def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, 
     cycles = f"{dataset_size} cycles" if dataset_size is not None else "cycles of unknown number"
     val = ("off" if not val_data else f"{len(val_data[1])} {val_data[0]} cycles" if val_data[0] == "synthetic"
            else f"{len(val_data[1])} held-out cycles of {run.data.val_dir}")
-    start = f"resuming at step {start_step}" if start_step else "from scratch" + (
-        f" (params from {run.init_from})" if run.init_from else "")
+    if val_data and val_data[0] == "synthetic" and run.data.source != "synthetic":
+        # training on other data but validating on the built-in synthetic frames: worth saying
+        val += " (synthetic frames, not your data: set --config.data.val_dir for held-out frames of your own)"
+    start = (f"resuming at step {start_step}" if start_step else
+             f"initialised from {run.init_from}" if run.init_from else "from scratch")
     return (f"train: config {config_name or '(given)'} | model {run.model.config['name']} | data {data}: {cycles} | "
             f"validation {val} | {devices} | {run.height}x{run.width}, batch {run.global_batch}, {num_steps} steps, "
             f"{start} | workdir {workdir}")
@@ -562,7 +565,7 @@ def _set_verbosity(level: str) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """`python -m bridge_jax.train` / `bridge-train`; returns the exit code (see the module docstring)."""
+    """`bridge-train` / `bridge-train`; returns the exit code (see the module docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     debug = cli.debug_enabled() or "--debug" in argv

@@ -79,7 +79,7 @@ def test_help_shows_examples_configs_sources_and_layouts(capsys):
         train.main(["--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    assert "python -m bridge_jax.train --config=demo --workdir=work/demo" in out
+    assert "bridge-train --config=demo --workdir=work/demo" in out and "--list-config" in out
     for name in ("default", "demo", "full2", "no_sharing", "stereo_only"):
         assert f"\n  {name} " in out, name
     assert "Data sources" in out and "folder" in out and "left/" in out and "right/" in out
@@ -287,3 +287,17 @@ def test_override_names_close_matches_for_every_caller():
         bench_cli.load_config("demo", ["loss.two_wrap=full2"])
     with pytest.raises(ValueError, match=r"no field 'zzz'$"):  # nothing close: no hint
         configs.override(configs.load("demo"), ["zzz=1"])
+
+
+def test_the_start_line_says_where_params_and_validation_come_from(tmp_path):
+    """A fine-tune is "initialised from" its model, and training on other data without `data.val_dir` says that
+    it validates on synthetic frames."""
+    from bridge_jax import setup
+    run = setup.parse(tiny_config(**{"init_from": "demo", "data.source": "folder", "data.data_dir": str(tmp_path)}),
+                      devices=jax.devices()[:1])
+    line = train._startup_line(run, "demo", 8, ("synthetic", [None] * 2), str(tmp_path), 0, 4)
+    assert "initialised from demo" in line and "from scratch" not in line
+    assert "synthetic frames, not your data" in line and "--config.data.val_dir" in line
+    plain = setup.parse(tiny_config(), devices=jax.devices()[:1])
+    line = train._startup_line(plain, "default", None, ("synthetic", [None] * 2), str(tmp_path), 0, 4)
+    assert "from scratch" in line and "not your data" not in line

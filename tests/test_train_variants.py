@@ -35,7 +35,7 @@ def test_all_variant_files_present():
 @pytest.mark.parametrize("name", VARIANTS)
 def test_config_builds_and_documents_its_command_line(name):
     mod = _load(name)
-    assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge_jax.demo" in mod.__doc__)
+    assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge-demo" in mod.__doc__)
     cfg = mod.get_config()
     run = setup.parse(cfg, devices=jax.devices()[:1])
     setup.parse(cfg, devices=jax.devices()[:2])

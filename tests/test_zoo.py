@@ -84,7 +84,7 @@ def test_unknown_and_missing_names_are_one_clear_error(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"'dmeo' is neither an existing path nor a model name \(did you mean demo"):
         inference.load_predictor("dmeo")
     monkeypatch.setenv(zoo.HOME_ENV, str(tmp_path))
-    with pytest.raises(ValueError, match=r"upstream_ver_b.*not on this machine.*bridge_jax.convert --from "
+    with pytest.raises(ValueError, match=r"upstream_ver_b.*not on this machine.*bridge-convert --from "
                                          r"monodepth_ver_b.pth --out " + str(tmp_path)):
         zoo.load_params("upstream_ver_b")
     # a path-like spec is never looked up in the registry
@@ -125,3 +125,13 @@ def test_predict_with_the_shipped_model_from_another_directory(tmp_path):
     epe = np.linalg.norm(flow - gt, axis=-1)[valid].mean()
     zero = np.linalg.norm(gt, axis=-1)[valid].mean()
     assert epe < 0.8 * zero, (epe, zero)
+
+
+def test_the_listing_says_how_to_get_weights_that_are_not_converted_yet(tmp_path, monkeypatch, capsys):
+    from bridge_jax.zoo.__main__ import main
+    monkeypatch.setenv(zoo.HOME_ENV, str(tmp_path))
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("upstream_ver_a"))
+    assert "not converted yet" in line and "bridge-convert --from monodepth_ver_a.pth" in line
+    assert str(tmp_path / "upstream_ver_a") in line

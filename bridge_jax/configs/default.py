@@ -5,10 +5,10 @@ pair-forwards), Adam 1e-4 halved at the starts of epochs 4, 7, 10 and 13 (upstre
 says "every 3 epochs, 5 times"), 80 epochs, lambda_sm 10, lambda_lr 0.5. Data: the built-in synthetic stereo
 video unless `--config.data.source` says otherwise.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/default
+    bridge-train --config=bridge_jax/configs/default.py --workdir=work/default
 
     # KITTI raw cycles instead of the synthetic video:
-    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/kitti \
+    bridge-train --config=bridge_jax/configs/default.py --workdir=work/kitti \
             --config.data.source=kitti_raw --config.data.data_dir=$HOME/kitti_raw
 
 The optional argument `:local` shrinks everything for a quick laptop smoke run.

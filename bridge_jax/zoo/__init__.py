@@ -1,10 +1,10 @@
 """Models by name: the weights shipped inside the package and a registry of other known checkpoints.
 
-    python -m bridge_jax.predict --checkpoint demo frame0.png frame1.png --out out/    # from any directory
+    bridge-predict --checkpoint demo frame0.png frame1.png --out out/    # from any directory
     from bridge_jax.inference import load_predictor
     pred = load_predictor("demo")                    # the shipped demo model, at the size it was trained at
-    python -m bridge_jax.zoo                         # lists the names
-    python -m bridge_jax.zoo build demo --from work/demo/train   # regenerate the shipped weights (maintainers)
+    bridge-zoo                         # lists the names
+    bridge-zoo build demo --from work/demo/train   # regenerate the shipped weights (maintainers)
 
 Wherever a command takes `--checkpoint` (predict, evaluate, export) or a config takes `init_from`, a registry
 name works as well as a path. Kinds of entry:
@@ -13,7 +13,7 @@ name works as well as a path. Kinds of entry:
   parameter paths joined by "/") and `<name>.json` (model description, working size, how it was trained, its
   validation numbers and the npz's SHA-256). Nothing is downloaded.
 * **local** (`upstream_ver_a/b/c`): the upstream authors' released PyTorch weights, converted once with
-  `python -m bridge_jax.convert` to a params folder under `$BRIDGE_JAX_HOME` (default `~/.cache/bridge_jax`);
+  `bridge-convert` to a params folder under `$BRIDGE_JAX_HOME` (default `~/.cache/bridge_jax`);
   the entry says where to download the `.pth` file and the exact command. Until converted, using the name is one
   error naming that command.
 
@@ -65,7 +65,7 @@ _ENTRIES: dict[str, Entry] = {
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
         f"variant full-{i}), converted to bridge_jax",
         path=f"upstream_ver_{v}", download=UPSTREAM_DOWNLOAD,
-        how=f"python -m bridge_jax.convert --from monodepth_ver_{v}.pth --out {{path}}")
+        how=f"bridge-convert --from monodepth_ver_{v}.pth --out {{path}}")
        for i, v in enumerate("abc", start=1)},
 }
 
