@@ -6,7 +6,7 @@ Layouts:
 - **training workdir**: `WORKDIR/model.json`, `WORKDIR/config.json`, `WORKDIR/checkpoints/<step>/` written by an
   orbax CheckpointManager with items `state` = {"params", "opt_state", "step", "rng"} and `data`.
 
-`load_params(path)` accepts a params-only dir, a training workdir (newest readable step) or a step dir.
+`read_params(path)` accepts a params-only dir, a training workdir (newest readable step) or a step dir.
 
 Broken checkpoints (truncated or garbled files, an empty step dir, a NaN train state) are never deleted: the
 readers fall back to the newest step that reads completely and say which step they skipped and why
@@ -239,7 +239,7 @@ def _latest_step(ckpt_dir: Path) -> Path:
 def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]:
     """Find `(model.json path, orbax tree path, subtree)` for any accepted checkpoint layout.
 
-    For a training workdir the tree path is the newest step's, readable or not: `load_params` is the reader
+    For a training workdir the tree path is the newest step's, readable or not: `read_params` is the reader
     that skips broken steps; this is for callers that only need the model.json beside it."""
     p = Path(path).absolute()
     if not p.exists():
@@ -255,7 +255,7 @@ def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]
                      f"a training workdir (model.json + checkpoints/<step>/) or a step dir checkpoints/<step>")
 
 
-# How often load_params re-lists a live workdir whose steps changed under it (a running training deletes old
+# How often read_params re-lists a live workdir whose steps changed under it (a running training deletes old
 # steps, keep-K), and how long it lets a deletion in progress finish before re-listing.
 LOAD_ATTEMPTS = 3
 _SETTLE_S = 0.5
@@ -339,7 +339,7 @@ def _read_newest_step(workdir: Path, want: Any, model_name: str, require_finite:
                      "attempts; try again, or read a step dir that the training run keeps")
 
 
-def load_params(path: str | os.PathLike, *, require_finite: bool = False) -> tuple[dict, dict]:
+def read_params(path: str | os.PathLike, *, require_finite: bool = False) -> tuple[dict, dict]:
     """Load `(model_cfg, params)` from a params-only dir, a training workdir (newest readable step) or a step dir.
 
     Params come back as a nested dict of float32 `jax.Array`s and are checked against the model's shapes.

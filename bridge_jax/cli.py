@@ -34,6 +34,14 @@ def _one_line_warning(message, category, filename, lineno, line=None):  # noqa: 
 _default_formatwarning = warnings.formatwarning
 
 
+# The console commands of pyproject.toml's [project.scripts], by module: usage lines name the command.
+COMMANDS = {"bridge_jax.train": "bridge-train", "bridge_jax.evaluate": "bridge-evaluate",
+            "bridge_jax.predict": "bridge-predict", "bridge_jax.bench": "bridge-bench",
+            "bridge_jax.convert": "bridge-convert", "bridge_jax.export": "bridge-export", "bridge_jax.demo": "bridge-demo",
+            "bridge_jax.data.synthetic": "bridge-synthetic", "bridge_jax.data.videos": "bridge-frames",
+            "bridge_jax.zoo": "bridge-zoo"}
+
+
 def make_parser(prog: str, doc: str, **kwargs) -> argparse.ArgumentParser:
     """An ArgumentParser for `python -m <prog>`: the first paragraph of `doc` (the module docstring) as its
     description, the rest of it (examples, output layout) as the epilog of `--help`, defaults shown. Also makes
@@ -41,7 +49,7 @@ def make_parser(prog: str, doc: str, **kwargs) -> argparse.ArgumentParser:
     warnings.formatwarning = _one_line_warning
     doc = textwrap.dedent(doc or "").strip("\n")
     first, _, rest = doc.partition("\n\n")
-    return argparse.ArgumentParser(prog=f"python -m {prog}", description=first.strip(),
+    return argparse.ArgumentParser(prog=COMMANDS.get(prog, f"python -m {prog}"), description=first.strip(),
                                    epilog=textwrap.dedent(rest).strip("\n") or None, formatter_class=HelpFormatter,
                                    **kwargs)
 

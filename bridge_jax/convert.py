@@ -2,8 +2,8 @@
 
 Example:
 
-    python -m bridge_jax.convert --from monodepth_ver_a.pth --out checkpoints/ver_a
-    python -m bridge_jax.predict --checkpoint checkpoints/ver_a lt.png rt.png lt1.png rt1.png --out out/
+    bridge-convert --from monodepth_ver_a.pth --out checkpoints/ver_a
+    bridge-predict --checkpoint checkpoints/ver_a lt.png rt.png lt1.png rt1.png --out out/
 
 Output: `OUT/model.json` (the model config) + `OUT/params/` (orbax), the params-only layout that evaluate,
 predict, export and `config.init_from` read.
@@ -439,7 +439,7 @@ def convert(src: str | Path, out: str | Path, *, model: str | None = None, overw
 
 
 def build_parser():
-    """The `python -m bridge_jax.convert` argument parser (help epilog: this module's docstring)."""
+    """The `bridge-convert` argument parser (help epilog: this module's docstring)."""
     ap = cli.make_parser("bridge_jax.convert", __doc__)
     ap.add_argument("--from", dest="src", required=True, metavar="PTH",
                     help="upstream .pth checkpoint: a bare state dict or an upstream epoch dict with 'state_dict'")

@@ -47,7 +47,7 @@ PAIRS = (
 )
 STEREO_T1, FLOW_LEFT, FLOW_RIGHT, STEREO_T = range(4)
 
-TASKS = ("flow_stereo", "stereo_only", "flow_only")
+TASK_SETS = ("flow_stereo", "stereo_only", "flow_only")
 _TASK_PAIRS = {
     "flow_stereo": (STEREO_T1, FLOW_LEFT, FLOW_RIGHT, STEREO_T),
     "stereo_only": (STEREO_T1, STEREO_T),
@@ -58,7 +58,7 @@ _TASK_PAIRS = {
 def pairs_for_tasks(tasks: str) -> tuple[int, ...]:
     """Indices into PAIRS of the pairs a training variant uses (paper: stereo-only, flow-only, flow+stereo)."""
     if tasks not in _TASK_PAIRS:
-        raise ValueError(f"tasks must be one of {TASKS}, got {tasks!r}")
+        raise ValueError(f"tasks must be one of {TASK_SETS}, got {tasks!r}")
     return _TASK_PAIRS[tasks]
 
 

@@ -1,6 +1,6 @@
 r"""README main job: train the `demo` config on the built-in synthetic stereo video, then evaluate it.
 
-    python -m bridge_jax.demo --workdir=work/demo        # what `make demo` runs (about 12 min on 2 CPU cores)
+    bridge-demo --workdir=work/demo        # what `make demo` runs (about 11 min on 2 CPU cores)
 
 Steps:
   1. train bridge_jax/configs/demo.py into WORKDIR/train (resumes if interrupted: run the command again),
@@ -42,7 +42,7 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     eval_dir = os.path.join(workdir, "eval")
 
     t0 = time.time()
-    print(f"[1/3] Training the demo model ({demo_run.num_train_steps} steps, {demo_run.height}x{demo_run.width}, "
+    print(f"[1/3] Training the demo model ({demo_run.loop.num_train_steps} steps, {demo_run.height}x{demo_run.width}, "
           f"{demo_run.model.config['name']}) in {train_dir}", flush=True)
     result = train.train_and_evaluate(demo_run, train_dir, config_name="demo")
     train_s = time.time() - t0

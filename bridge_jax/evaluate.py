@@ -1,10 +1,10 @@
 """Evaluation on KITTI 2015 / 2012, the Eigen split, the built-in synthetic set or any KITTI-layout folder.
 
-    python -m bridge_jax.evaluate --checkpoint CKPT --dataset kitti2015 --data-dir ~/data/data_scene_flow
+    bridge-evaluate --checkpoint CKPT --dataset kitti2015 --data-dir ~/data/data_scene_flow
     # the shipped demo model (or your own `make demo` run: --checkpoint work/demo/train) on the synthetic set
-    python -m bridge_jax.evaluate --checkpoint demo --dataset synthetic --data-dir work/demo/val_data --out eval/
+    bridge-evaluate --checkpoint demo --dataset synthetic --data-dir work/demo/val_data --out eval/
     # the baselines alone, on the first 20 frames
-    python -m bridge_jax.evaluate --dataset kitti2015 --data-dir ~/data/data_scene_flow --max-frames 20
+    bridge-evaluate --dataset kitti2015 --data-dir ~/data/data_scene_flow --max-frames 20
 
 The model runs on each frame at the working size (default: the size a training workdir was trained at, else
 256×512 = H×W like the paper), one compiled function per working size and batch, and its maps are brought to the
@@ -30,11 +30,10 @@ disparity, DIS for optical flow). Results are printed and written as JSON + Mark
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
 import numpy as np
@@ -44,53 +43,8 @@ from bridge_jax import cli, files, inference
 from bridge_jax.eval.baselines import opencv_method, zero_method
 from bridge_jax.eval.datasets import DATASETS, EvaluationError, Frame, list_frames, load_frame
 from bridge_jax.eval.methods import ModelMethod
-from bridge_jax.eval.report import frame_panel, markdown_table, write_outputs
-from bridge_jax.eval.scoring import Scores
-
-
-@dataclasses.dataclass
-class Scored:
-    """What `score_methods` measured: the scores, seconds per method and for loading, the picture panels."""
-
-    scores: Scores
-    method_s: dict[str, float]
-    load_s: float
-    pictures: list[tuple[str, np.ndarray]]
-    num_frames: int
-
-
-def score_methods(batches: Iterable[Sequence[Frame]], methods: dict[str, Callable], *, num_pictures: int = 0,
-                  picture_method: Optional[str] = None, bar=None) -> Scored:
-    """Runs every method on every batch of frames and scores its predictions.
-
-    Args:
-      batches: lists of frames (a generator may load them lazily: its time is counted as loading).
-      methods: name -> method (frames -> predictions, see `bridge_jax.eval.methods`).
-      num_pictures: keep `frame_panel`s of the first frames, drawn from `picture_method`'s predictions.
-      bar: optional progress bar (tqdm), advanced by the frames of each batch.
-    """
-    scores = Scores(methods)
-    method_s = {m: 0.0 for m in methods}
-    pictures: list[tuple[str, np.ndarray]] = []
-    load_s, n = 0.0, 0
-    batches = iter(batches)
-    while True:
-        t0 = time.perf_counter()
-        frames = next(batches, None)
-        load_s += time.perf_counter() - t0
-        if frames is None:
-            break
-        for name, method in methods.items():
-            t0 = time.perf_counter()
-            for frame, pred in zip(frames, method(frames)):
-                scores.add(name, frame, pred)
-                if name == picture_method and len(pictures) < num_pictures:
-                    pictures.append((frame.frame_id, frame_panel(frame, pred)))
-            method_s[name] += time.perf_counter() - t0
-        n += len(frames)
-        if bar is not None:
-            bar.update(len(frames))
-    return Scored(scores, method_s, load_s, pictures, n)
+from bridge_jax.eval.report import markdown_table, write_outputs
+from bridge_jax.eval.scoring import score_methods
 
 
 def evaluate(predictor, dataset: str, data_dir: str, *, split: Optional[str] = None, baselines: bool = True,

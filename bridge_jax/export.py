@@ -1,7 +1,7 @@
 """Export the inference network to a serialized StableHLO artifact (`jax.export`), weights baked in.
 
-    python -m bridge_jax.export --checkpoint demo --out demo.stablehlo
-    python -m bridge_jax.export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
+    bridge-export --checkpoint demo --out demo.stablehlo
+    bridge-export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
                                 [--dtype float32|bfloat16] [--task flow|stereo]
 
 The exported function is the predictor's network (`bridge_jax.inference.Predictor`) at its working size: it maps
@@ -36,8 +36,8 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
     constants; `task` picks the network of a separate-networks model."""
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
-    if task not in inference.TASKS:
-        raise ValueError(f"--task must be one of {inference.TASKS}, got {task!r}")
+    if task not in inference.PAIR_KINDS:
+        raise ValueError(f"--task must be one of {inference.PAIR_KINDS}, got {task!r}")
     params = jax.tree.map(jnp.asarray, predictor.params)
     rows = predictor.net.static_rows((task == "stereo",) * batch)
 
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "(B, H, W, 6))")
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32",
                     help="compute dtype baked into the artifact (weights stay float32)")
-    ap.add_argument("--task", choices=list(inference.TASKS), default="flow",
+    ap.add_argument("--task", choices=list(inference.PAIR_KINDS), default="flow",
                     help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
                          "stereo: left/right pairs); a shared network is the same for both")
     cli.add_debug_flag(ap)

@@ -3,6 +3,7 @@
     from bridge_jax.inference import load_predictor
     pred = load_predictor("demo")                                   # the shipped model, or a checkpoint path
     flow = pred.predict_pair(frame_t, frame_t1)                     # (h, w, 2) pixels, uint8 or float images
+    disp = pred.predict_pair(left, right, task="stereo")             # (h, w) disparity in pixels
     out = pred.predict_cycle(left_t, right_t, left_t1, right_t1)   # disp_t, disp_t1 (h, w), flow (h, w, 2)
 
 Training's validation, `evaluate`, `predict`, `export` and the library all go through `Predictor`, so they
@@ -45,7 +46,7 @@ DEFAULT_WORKING_SIZE = "trained"
 """What the commands run at when `--working-size` is not given."""
 NATIVE_MAX_PIXELS = 1024 * 768
 """Largest working size (pixels) the native rule picks: bigger inputs are run at this many pixels (same aspect)."""
-TASKS = ("flow", "stereo")
+PAIR_KINDS = ("flow", "stereo")
 """What a pair is: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
 
 
@@ -189,8 +190,8 @@ def native_working_size(model_name: str, height: int, width: int,
 
 def _check_task(task: str) -> bool:
     """True for a stereo pair; ValueError for an unknown task."""
-    if task not in TASKS:
-        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+    if task not in PAIR_KINDS:
+        raise ValueError(f"task must be one of {PAIR_KINDS}, got {task!r}")
     return task == "stereo"
 
 
@@ -335,13 +336,19 @@ class Predictor:
         return [map_to_input_resolution(task, m, *np.shape(a)[:2]) for (task, a, _), m in zip(jobs, maps)]
 
     def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow") -> np.ndarray:
-        """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> `(N, h, w, 2)` float32 pixel maps
-        at the input resolution (the flow rule, for either task)."""
+        """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> predictions at the input
+        resolution, by the task's rule (`map_to_input_resolution`): flow `(N, h, w, 2)` float32 pixels for
+        "flow" pairs, disparity `(N, h, w)` float32 pixels for "stereo" pairs (as `predict` gives them)."""
         pairs, (h, w) = self.prepare(images_a, images_b)
-        return flow_to_input_resolution(self.run_network(pairs, _check_task(task)), h, w)
+        maps = self.run_network(pairs, _check_task(task))
+        if task == "flow":
+            return flow_to_input_resolution(maps, h, w)
+        return np.stack([map_to_input_resolution(task, m, h, w) for m in maps])
 
     def predict_pair(self, image_a: Any, image_b: Any, task: str = "flow") -> np.ndarray:
-        """Correspondence from `image_a` to `image_b`: `(h, w, 2)` float32, pixels of the input resolution."""
+        """The prediction of one pair at the input resolution: flow `(h, w, 2)` from `image_a` to `image_b`
+        ("flow"), or the disparity `(h, w)` of a left image `image_a` against its right image `image_b`
+        ("stereo"); float32 pixels of the input resolution."""
         return self.predict_pairs([image_a], [image_b], task)[0]
 
     def predict_cycle(self, left_t: Any, right_t: Any, left_t1: Any, right_t1: Any) -> dict[str, np.ndarray]:
@@ -387,7 +394,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
                    dtype: Any = None, size_option: str = "working size", native: bool = False,
                    max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
-    `bridge_jax.checkpointing.load_params` accepts (params-only dir, training workdir, step dir).
+    `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
     Working size: `height`/`width` if given, else the size a training workdir or shipped model was trained at
     (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's). `native=True`
@@ -422,4 +429,4 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",
            "to_rgb_float", "resize_images",
-           "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "TASKS"]
+           "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "PAIR_KINDS"]

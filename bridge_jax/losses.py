@@ -66,42 +66,41 @@ class LossConfig:
     Defaults follow the paper; `LossConfig.upstream()` reproduces the upstream code.
     """
 
-    tasks: str = "flow_stereo"  # flow_stereo | stereo_only | flow_only
-    two_warp: str = "none"  # none | full1 | full2 | full3
+    tasks: str = "flow_stereo"  # which pairs train: flow_stereo | stereo_only | flow_only
+    two_warp: str = "none"  # 2-warp consistency term (eqs. 10-12): none | full1 | full2 | full3
     # The 2-warp estimate is compared with the 1-warp reconstruction of the same frame (paper eq. 12 and the
     # author's stated intent) or with the real image (upstream code).
-    two_warp_target: str = "reconstruction"  # reconstruction | image
+    two_warp_target: str = "reconstruction"  # what the 2-warp estimate is compared with: reconstruction | image
     # paper: lambda_2warp = 0.2 times the sum of the variant's two terms; upstream: 0.1 per term.
-    two_warp_weighting: str = "paper"  # paper | upstream
+    two_warp_weighting: str = "paper"  # 2-warp weights: paper (0.2 x the sum) | upstream (0.1 per term)
     # Occlusion threshold uses |W(D', D)|^2 (paper eq. 6) or the unwarped |D'|^2 (upstream code).
-    occlusion_norm: str = "warped"  # warped | unwarped
-    reduction: str = "cycle"  # cycle | batch (see module docstring)
-    alpha: float = 0.85
-    beta: float = 10.0
-    lambda_sm: float = 10.0
-    lambda_lr: float = 0.5
-    lambda_2warp: float = 0.2
-    occ_alpha1: float = 0.01
-    occ_alpha2: float = 0.5
-    border_ratio: float = 0.1
-    mask_floor: float = 1e-3
-    smooth_scale: float = 1.0 / 20.0  # upstream divides the pixel map by 20 before the smoothness term
-    num_scales: int = 4
-    # ---- training switches beyond the paper (each default is the paper's behaviour; measured in
-    # experiments/results/ablation.md)
+    occlusion_norm: str = "warped"  # occlusion test on |W(D', D)|^2: warped (eq. 6) | unwarped (upstream)
+    reduction: str = "cycle"  # how terms are averaged: cycle | batch (see the module docstring)
+    alpha: float = 0.85  # SSIM weight of the SSIM + L1 photometric error (eq. 5)
+    beta: float = 10.0  # edge constant of the 2nd-order smoothness (eq. 8)
+    lambda_sm: float = 10.0  # weight of the 2nd-order smoothness term (eq. 13)
+    lambda_lr: float = 0.5  # weight of the left-right consistency term (eq. 13)
+    lambda_2warp: float = 0.2  # weight of the 2-warp term (eq. 13)
+    occ_alpha1: float = 0.01  # occlusion threshold, relative part (eq. 6)
+    occ_alpha2: float = 0.5  # occlusion threshold, constant part in pixels^2 (eq. 6)
+    border_ratio: float = 0.1  # image border (fraction of the size) left out of the occlusion masks
+    mask_floor: float = 1e-3  # smallest mask sum a masked mean divides by
+    smooth_scale: float = 1.0 / 20.0  # the pixel map is scaled by this before the smoothness term (upstream)
+    num_scales: int = 4  # pyramid scales of the network's maps
+    # ---- training switches beyond the paper (each default is the paper's behaviour)
     # Photometric term: the paper's SSIM + L1 mix, or the census transform (7x7 soft ternary census, its soft
     # Hamming distance, robust penalty (|x| + 0.01)^0.4; DDFlow/UFlow), robust to brightness changes.
-    photometric: str = "ssim_l1"  # ssim_l1 | census
+    photometric: str = "ssim_l1"  # photometric error: ssim_l1 (paper) | census
     # Scales the loss sums: the paper's 4 scales, or only the finest map (scale 0 = the working size), compared
     # with the full-resolution images (UFlow, SMURF, DDFlow).
-    scales: str = "all"  # all | finest
+    scales: str = "all"  # scales the loss sums: all (paper) | finest
     # Edge-aware smoothness of order 2 (paper eq. 8; weight lambda_sm, edge constant beta) or 1 (first
     # differences; its own weight lambda_sm1 and edge constant beta1).
-    smoothness_order: int = 2
-    lambda_sm1: float = 4.0
-    beta1: float = 10.0
+    smoothness_order: int = 2  # edge-aware smoothness of order 2 (eq. 8) or 1
+    lambda_sm1: float = 4.0  # weight of the 1st-order smoothness term
+    beta1: float = 10.0  # edge constant of the 1st-order smoothness
     # Flow pairs use no occlusion mask (mask 1, as stereo pairs) before this training step; 0 = the paper.
-    occlusion_start_step: int = 0
+    occlusion_start_step: int = 0  # flow pairs use no occlusion mask before this step (0 = the paper)
     # Self-supervision (SelFlow, SMURF, Flow2Stereo; `self_supervision_loss`): the weight of a term in which the
     # network's own scale-0 pixel maps on the full frames (the teacher: gradient stopped, only where its
     # forward-backward check passes and its match lies inside the image) supervise its maps on the cycle's four
@@ -110,13 +109,13 @@ class LossConfig:
     # 0.3. The term is 0 before training step `self_supervision_start_step` (an untrained teacher teaches
     # nothing). The crop must be a multiple of 4 (2 * crop keeps H and W multiples of 8), and the cropped size
     # a valid working size of the model (resnet_md: 2 * crop a multiple of 64).
-    self_supervision: float = 0.0
-    self_supervision_start_step: int = 0
-    self_supervision_crop: int = 32
+    self_supervision: float = 0.0  # weight of the self-supervision term (0 = off, the paper)
+    self_supervision_start_step: int = 0  # the self-supervision term is 0 before this step
+    self_supervision_crop: int = 32  # px cut from every side for the student (a multiple of 4)
 
     def __post_init__(self):
         choices = {
-            "tasks": cyc.TASKS,
+            "tasks": cyc.TASK_SETS,
             "two_warp": TWO_WARP_TYPES,
             "two_warp_target": ("reconstruction", "image"),
             "two_warp_weighting": ("paper", "upstream"),

@@ -30,7 +30,7 @@ REMAT_POLICIES = {
 """Rematerialisation of the network's forward in the gradient (`jax.checkpoint` policies): "none" keeps every
 activation; "conv_outputs" keeps the outputs of convolutions and matmuls and recomputes the elementwise ops
 between them (activations, bias adds, concatenations, upsampling); "nothing" recomputes the whole forward.
-Gradients are the same; what changes is peak memory and time (experiments/results/perf.md)."""
+Gradients are the same; what changes is peak memory and time (`bridge-bench --what train_step` measures both)."""
 
 
 def compute_dtype(dtype: Any):

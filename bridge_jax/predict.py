@@ -1,16 +1,16 @@
 """Run a trained model on your own images or video and write pictures and raw values.
 
     # optical flow between two frames (or --pair-kind stereo for a rectified left/right pair)
-    python -m bridge_jax.predict --checkpoint demo frame0.png frame1.png --out out/
+    bridge-predict --checkpoint demo frame0.png frame1.png --out out/
     # a stereo-video cycle: left_t right_t left_t1 right_t1 → disparity at t and t+1, flow, depth
-    python -m bridge_jax.predict --checkpoint demo lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
+    bridge-predict --checkpoint demo lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
     # a folder of frames (mono: flow between consecutive frames; with left/ and right/ sub-folders: stereo video),
     # with raw values as KITTI PNGs, Middlebury .flo (flow) and .pfm (disparity, depth)
-    python -m bridge_jax.predict --checkpoint work/demo/train frames/ --out out/ --raw png,flo,pfm
+    bridge-predict --checkpoint work/demo/train frames/ --out out/ --raw png,flo,pfm
     # a video (mono), a side-by-side stereo video, or two videos (left, right); writes out/video.mp4 too
-    python -m bridge_jax.predict --checkpoint CKPT drive.mp4 --out out/ [--stereo-video sbs]
+    bridge-predict --checkpoint CKPT drive.mp4 --out out/ [--stereo-video sbs]
     # KITTI 2015 (or 2012) benchmark submission from a KITTI layout folder (training or testing)
-    python -m bridge_jax.predict --checkpoint CKPT --kitti-submission --data-dir data_scene_flow --out sub/
+    bridge-predict --checkpoint CKPT --kitti-submission --data-dir data_scene_flow --out sub/
 
 Outputs are named after the inputs: ``<stem>`` is the file stem of the frame's (left) image, e.g.
 ``frame0.png`` → ``flow/frame0.png`` (made unique with ``_2``, ``_3``, ... when two inputs share a stem); for

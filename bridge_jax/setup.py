@@ -1,7 +1,7 @@
 """A training config (`ml_collections.ConfigDict`, see `bridge_jax/configs/`) parsed and checked once.
 
     run = setup.parse(config)      # every check of the user's input, before anything is written
-    run.model, run.loss, run.optimizer, run.data, run.eval     # typed sections
+    run.model, run.loss, run.optimizer, run.data, run.loop, run.eval     # typed sections
     run.devices, run.micro_batch, run.rows_per_device          # resolved for this machine
 
 The trainer, the demo and the benchmark consume the `Run`; nothing below reads ConfigDict fields. Every bad
@@ -10,15 +10,20 @@ setting is one `ConfigError` naming the option (the command line prints it as on
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import io
 import json
+import textwrap
+import tokenize
 from typing import Any, Optional, Sequence
 
 import jax
 import ml_collections
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import cycle, losses, models
+from bridge_jax import configs, cycle, losses, models
 from bridge_jax.data.pipeline import DataConfig
 from bridge_jax.micro_batch import MicroBatchedStep
 from bridge_jax.models.layers import WEIGHT_GRAD_METHODS
@@ -52,49 +57,103 @@ class ModelSpec:
         return dict(self.config, **({"separate_networks": True} if self.separate else {}))
 
 
+def _check(ok: bool, section: str, name: str, want: str, value) -> None:
+    if not ok:
+        raise ValueError(f"config.{section + '.' if section else ''}{name} must be {want}, got {value!r}")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 @dataclasses.dataclass(frozen=True)
-class EvalConfig:
-    """Held-out synthetic validation during training: `num_samples` cycles from base seed `seed` (disjoint from
-    training's), `batch` cycles per predictor call, every `every` steps (0: only at the end, -1: never), a
-    picture every `image_every` steps (<= 0: with validations only)."""
+class RunOptions:
+    """The top-level fields of a training config (beside the optimizer's, `train_step.OptimizerConfig`)."""
 
-    num_samples: int
-    seed: int
-    batch: int
-    every: int
-    image_every: int
+    height: int = 256  # working height in pixels (a multiple of the model's input multiple)
+    width: int = 512  # working width in pixels (a multiple of the model's input multiple)
+    global_batch: int = 2  # cycles per step, all devices and processes together
+    seed: int = 0  # parameter init, shuffling and augmentation seed
+    dtype: str = "float32"  # compute dtype: float32 | bfloat16 (params and optimizer stay float32)
+    remat: str = "none"  # rematerialisation in the gradient: none | conv_outputs | nothing (network.REMAT_POLICIES)
+    conv_weight_grad: str = "auto"  # how convolutions compute weight gradients (layers.WEIGHT_GRAD_METHODS)
+    separate_networks: bool = False  # two networks (stereo, flow): the paper's no-sharing ablation
+    micro_batch: int = -1  # pair-forwards per device per call: 0 = one jitted step, -1 = auto (2 on CPU)
+    init_from: str = ""  # initial params: a checkpoint folder or a shipped model name ("" = random init)
+    compilation_cache_dir: str = "auto"  # XLA compilation cache: auto = <workdir>/xla_cache, "" = off, or a folder
+    num_devices: int = -1  # devices of the ('data',) mesh: -1 = all, N = the first N (single process)
 
-    @property
-    def enabled(self) -> bool:
-        return self.every >= 0 and self.num_samples > 0
+    def __post_init__(self):
+        for name in ("height", "width", "global_batch", "seed", "micro_batch", "num_devices"):
+            _check(_is_int(getattr(self, name)), "", name, "an integer", getattr(self, name))
+        _check(self.dtype in COMPUTE_DTYPES, "", "dtype", f"one of {sorted(COMPUTE_DTYPES)}", self.dtype)
+        _check(self.remat in REMAT_POLICIES, "", "remat", f"one of {sorted(REMAT_POLICIES)}", self.remat)
+        _check(self.conv_weight_grad in WEIGHT_GRAD_METHODS, "", "conv_weight_grad",
+               f"one of {list(WEIGHT_GRAD_METHODS)}", self.conv_weight_grad)
+        _check(isinstance(self.compilation_cache_dir, str), "", "compilation_cache_dir", "a folder, 'auto' or '' (off)",
+               self.compilation_cache_dir)
+        _check(isinstance(self.init_from, str), "", "init_from", "a checkpoint folder, a model name or ''",
+               self.init_from)
 
 
 @dataclasses.dataclass(frozen=True)
 class LoopConfig:
-    """Checkpoints, logging and guards of the training loop."""
+    """The `loop` section: how long training runs, and how often it logs, checkpoints, validates and draws."""
 
-    checkpoint_every: int
-    keep_checkpoints: int
-    async_checkpoints: bool
-    log_every: int
-    progress_bar: bool
-    max_nonfinite_in_row: int
+    num_train_steps: int = -1  # total steps; -1 = num_epochs * steps_per_epoch
+    num_epochs: int = 80  # epochs (when num_train_steps is -1); the lr schedule counts in epochs
+    steps_per_epoch: int = -1  # steps of one epoch; -1 = the data source's size / global_batch
+    log_every: int = 50  # steps between metrics.jsonl / TensorBoard records
+    checkpoint_every: int = 1000  # steps between checkpoints (one more at the end)
+    eval_every: int = 2000  # steps between validations; 0 = only at the end, -1 = never
+    image_every: int = 1000  # steps between prediction pictures; <= 0 = with validations only
+    keep_checkpoints: int = 3  # newest checkpoints kept in the workdir
+    async_checkpoints: bool = True  # write checkpoints in the background while training goes on
+    progress_bar: bool = True  # tqdm progress bar on stderr
+    max_nonfinite_in_row: int = 20  # non-finite steps in a row (skipped) before the run stops as diverged
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.type == "bool":
+                _check(isinstance(value, bool), "loop", f.name, "True or False", value)
+            else:
+                _check(_is_int(value), "loop", f.name, "an integer", value)
+        for name in ("num_train_steps", "steps_per_epoch"):
+            _check(getattr(self, name) > 0 or getattr(self, name) == -1, "loop", name, "positive (or -1 = derived)",
+                   getattr(self, name))
+        for name in ("num_epochs", "log_every", "checkpoint_every", "keep_checkpoints", "max_nonfinite_in_row"):
+            _check(getattr(self, name) > 0, "loop", name, "positive", getattr(self, name))
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """The `eval` section: the held-out validation set of training (synthetic frames with exact ground truth, or
+    the user's `data.val_dir`); how often it runs is `loop.eval_every`."""
+
+    num_samples: int = 16  # validation cycles
+    seed: int = 1_000_003  # base seed of the synthetic validation frames (disjoint from training's `seed`)
+    batch: int = 4  # cycles per predictor call
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            _check(_is_int(getattr(self, f.name)), "eval", f.name, "an integer", getattr(self, f.name))
 
 
 @dataclasses.dataclass(frozen=True)
 class DistributedConfig:
-    """Multi-host: `jax.distributed.initialize` arguments (empty = auto-detect on TPU / SLURM / ...)."""
+    """The `distributed` section: `jax.distributed.initialize` arguments (empty = auto-detect on TPU, SLURM...)."""
 
-    enabled: bool
-    coordinator_address: str
-    num_processes: int
-    process_id: int
+    enabled: bool = False  # join a multi-host cluster before training
+    coordinator_address: str = ""  # host:port of process 0 ("" = auto-detect)
+    num_processes: int = 0  # processes in the cluster (0 = auto-detect)
+    process_id: int = -1  # this process's index (-1 = auto-detect)
 
 
 @dataclasses.dataclass(frozen=True)
 class Run:
-    """Everything a training run needs, checked. `steps_per_epoch` and `num_train_steps` may still be -1
-    (derived from the data source's size, see `steps`)."""
+    """Everything a training run needs, checked. `loop.steps_per_epoch` and `loop.num_train_steps` may still be
+    -1 (derived from the data source's size, see `steps`)."""
 
     model: ModelSpec
     loss: losses.LossConfig
@@ -110,9 +169,6 @@ class Run:
     devices: tuple
     num_processes: int
     micro_batch: int
-    steps_per_epoch: int
-    num_epochs: int
-    num_train_steps: int
     init_from: str
     compilation_cache_dir: str
     config_json: dict  # the whole config as JSON (the workdir's config.json)
@@ -126,36 +182,48 @@ class Run:
         """Pair-forwards per device per step: 2P rows per cycle, the batch sharded over the devices."""
         return self.global_batch // self.num_devices * cycle.rows_per_cycle(self.loss.pairs)
 
+    @property
+    def validates(self) -> bool:
+        """Whether training validates (`loop.eval_every` >= 0 and a non-empty validation set)."""
+        return self.loop.eval_every >= 0 and self.eval.num_samples > 0
+
     def steps(self, dataset_size: Optional[int]) -> tuple[int, int]:
         """(steps per epoch, total steps), resolving -1 (= derived) with the data source's size."""
-        steps_per_epoch = self.steps_per_epoch
+        loop = self.loop
+        steps_per_epoch = loop.steps_per_epoch
         if steps_per_epoch < 0:
             if dataset_size is None:
-                raise ConfigError("config.steps_per_epoch=-1 needs a data source of known size; set it explicitly")
+                raise ConfigError("config.loop.steps_per_epoch=-1 needs a data source of known size; set it "
+                                  "explicitly")
             steps_per_epoch = max(1, dataset_size // self.global_batch)
-        num_steps = self.num_train_steps if self.num_train_steps > 0 else self.num_epochs * steps_per_epoch
+        num_steps = loop.num_train_steps if loop.num_train_steps > 0 else loop.num_epochs * steps_per_epoch
         return steps_per_epoch, num_steps
 
 
-def _section(config, name: str) -> dict:
-    return config[name].to_dict()
+# The sections of a training config and the dataclass each is parsed into ("" = the top level, which also holds
+# the optimizer's fields). `model` is `models.model_config`'s dict (its keys depend on the model).
+SECTIONS = (("", RunOptions), ("", OptimizerConfig), ("loss", losses.LossConfig), ("data", DataConfig),
+            ("loop", LoopConfig), ("eval", EvalConfig), ("distributed", DistributedConfig))
 
 
 def _typed(cls, values: dict, name: str):
+    """`cls(**values)`; unknown fields and refused values are one ConfigError naming `config.<name>`."""
+    where = f"config.{name}: " if name else "config."  # top-level fields: "config.lr must be ..."
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - known)
     if unknown:
-        raise ConfigError(f"config.{name}: unknown field(s) {unknown}; known fields: {sorted(known)}")
+        raise ConfigError(f"{where}unknown field(s) {unknown}; known fields: {sorted(known)}")
     try:
         return cls(**values)
     except (TypeError, ValueError) as e:
-        raise ConfigError(f"config.{name}: {e}") from e
+        raise ConfigError(str(e) if str(e).startswith("config.") else f"{where}{e}") from e
 
 
-def _positive(config, *names: str) -> None:
-    for name in names:
-        if config[name] <= 0:
-            raise ConfigError(f"config.{name} must be positive, got {config[name]}")
+def _values(config, name: str, cls) -> dict:
+    """The values of section `name` of `config` ("" = `cls`'s fields at the top level)."""
+    if name:
+        return config[name].to_dict()
+    return {f.name: config[f.name] for f in dataclasses.fields(cls)}
 
 
 def _initialize_distributed(d: DistributedConfig) -> None:
@@ -216,71 +284,43 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     """Check a training config and return its `Run` (raises ConfigError naming the option).
 
     `devices`: the devices to shard over; None (the trainer) = `config.num_devices` of this process's view,
-    after joining the cluster of a multi-host config (`config.distributed`).
+    after joining the cluster of a multi-host config (`config.distributed`). Fields of the `loop` section set
+    at the top level (their place before that section existed) are moved there, with a note.
     """
     if isinstance(config, Run):
         return config
+    config = configs.move_flat_keys(config)
     try:
-        model_values = _section(config, "model")
-        data_values = _section(config, "data")
-        loss_values = _section(config, "loss")
-        eval_values = _section(config, "eval")
-        distributed = _typed(DistributedConfig, _section(config, "distributed"), "distributed")
-        optimizer_values = {f.name: config[f.name] for f in dataclasses.fields(OptimizerConfig)}
-        optimizer_values["lr_milestones"] = tuple(int(m) for m in optimizer_values["lr_milestones"])
-        fields = {name: config[name] for name in (
-            "height", "width", "global_batch", "seed", "dtype", "remat", "conv_weight_grad", "separate_networks",
-            "micro_batch",
-            "steps_per_epoch", "num_epochs", "num_train_steps", "init_from", "compilation_cache_dir", "num_devices",
-            "eval_every", "image_every", "checkpoint_every", "keep_checkpoints", "async_checkpoints", "log_every",
-            "progress_bar", "max_nonfinite_in_row")}
+        model_values = config["model"].to_dict()
+        values = {cls: _values(config, name, cls) for name, cls in SECTIONS}
     except (AttributeError, KeyError) as e:
         raise ConfigError(f"the config has no field {e} (configs are built from bridge_jax/configs/default.py)") from e
-
+    values[OptimizerConfig]["lr_milestones"] = tuple(int(m) for m in values[OptimizerConfig]["lr_milestones"])
+    typed = {cls: _typed(cls, values[cls], name) for name, cls in SECTIONS if cls is not losses.LossConfig}
+    try:
+        typed[losses.LossConfig] = losses.LossConfig.from_dict(values[losses.LossConfig])
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"config.loss: {e}") from e
+    opts, loss_cfg = typed[RunOptions], typed[losses.LossConfig]
     try:
         model_cfg = models.model_config(model_values)
     except ValueError as e:
         raise ConfigError(f"config.model: {e}") from e
     try:
-        models.check_working_size(model_cfg["name"], fields["height"], fields["width"], "config.height/config.width")
+        models.check_working_size(model_cfg["name"], opts.height, opts.width, "config.height/config.width")
     except ValueError as e:
         raise ConfigError(str(e)) from e
-    if fields["dtype"] not in COMPUTE_DTYPES:
-        raise ConfigError(f"config.dtype must be one of {sorted(COMPUTE_DTYPES)}, got {fields['dtype']!r}")
-    if fields["remat"] not in REMAT_POLICIES:
-        raise ConfigError(f"config.remat must be one of {sorted(REMAT_POLICIES)}, got {fields['remat']!r}")
-    if fields["conv_weight_grad"] not in WEIGHT_GRAD_METHODS:
-        raise ConfigError(f"config.conv_weight_grad must be one of {list(WEIGHT_GRAD_METHODS)}, got "
-                          f"{fields['conv_weight_grad']!r}")
-    try:
-        loss_cfg = losses.LossConfig.from_dict(loss_values)
-    except (ValueError, TypeError) as e:
-        raise ConfigError(f"config.loss: {e}") from e
     if loss_cfg.self_supervision > 0:
-        _check_self_supervision_crop(model_cfg["name"], int(fields["height"]), int(fields["width"]),
-                                     loss_cfg.self_supervision_crop)
-    data = _typed(DataConfig, data_values, "data")
-    try:
-        optimizer = OptimizerConfig(**optimizer_values)
-    except (ValueError, TypeError) as e:
-        raise ConfigError(f"config.{e}") from e
-    if not isinstance(fields["compilation_cache_dir"], str):
-        raise ConfigError(f"config.compilation_cache_dir must be a folder, 'auto' or '' (off), got "
-                          f"{fields['compilation_cache_dir']!r}")
-    if fields["steps_per_epoch"] == 0 or fields["num_train_steps"] == 0:
-        raise ConfigError("config.steps_per_epoch and config.num_train_steps must be positive (or -1 = derived)")
-    _positive(config, "checkpoint_every", "keep_checkpoints", "log_every", "max_nonfinite_in_row")
-    eval_cfg = _typed(EvalConfig, dict(eval_values, every=int(fields["eval_every"]),
-                                       image_every=int(fields["image_every"])), "eval")
+        _check_self_supervision_crop(model_cfg["name"], opts.height, opts.width, loss_cfg.self_supervision_crop)
 
     if devices is None:
-        _initialize_distributed(distributed)
+        _initialize_distributed(typed[DistributedConfig])
         nproc = jax.process_count() if num_processes is None else num_processes
-        devices = _mesh_devices(int(fields["num_devices"]), nproc)
+        devices = _mesh_devices(opts.num_devices, nproc)
     else:
         nproc = 1 if num_processes is None else num_processes
     devices = tuple(devices)
-    num_devices, batch = len(devices), int(fields["global_batch"])
+    num_devices, batch = len(devices), opts.global_batch
     if batch <= 0:
         raise ConfigError(f"config.global_batch must be positive, got {batch}")
     if batch % num_devices:
@@ -289,24 +329,18 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     if batch % nproc:
         raise ConfigError(f"config.global_batch={batch} is not divisible by the {nproc} processes")
     rows_per_device = batch // num_devices * cycle.rows_per_cycle(loss_cfg.pairs)
-    micro_batch = int(fields["micro_batch"])
+    micro_batch = opts.micro_batch
     if micro_batch < -1 or (micro_batch > 0 and rows_per_device % micro_batch):
         raise ConfigError(f"config.micro_batch={micro_batch} must be 0 (no micro-batching), -1 (auto) or divide the "
                           f"{rows_per_device} pair-forwards per device")
 
     return Run(
-        model=ModelSpec(model_cfg, bool(fields["separate_networks"]), str(fields["dtype"]), str(fields["remat"]),
-                        str(fields["conv_weight_grad"])),
-        loss=loss_cfg, optimizer=optimizer, data=data, eval=eval_cfg,
-        loop=LoopConfig(int(fields["checkpoint_every"]), int(fields["keep_checkpoints"]),
-                        bool(fields["async_checkpoints"]), int(fields["log_every"]), bool(fields["progress_bar"]),
-                        int(fields["max_nonfinite_in_row"])),
-        distributed=distributed, height=int(fields["height"]), width=int(fields["width"]), global_batch=batch,
-        seed=int(fields["seed"]), devices=devices, num_processes=nproc,
+        model=ModelSpec(model_cfg, opts.separate_networks, opts.dtype, opts.remat, opts.conv_weight_grad),
+        loss=loss_cfg, optimizer=typed[OptimizerConfig], data=typed[DataConfig], eval=typed[EvalConfig],
+        loop=typed[LoopConfig], distributed=typed[DistributedConfig], height=opts.height, width=opts.width,
+        global_batch=batch, seed=opts.seed, devices=devices, num_processes=nproc,
         micro_batch=resolve_micro_batch(micro_batch, rows_per_device, devices[0].platform),
-        steps_per_epoch=int(fields["steps_per_epoch"]), num_epochs=int(fields["num_epochs"]),
-        num_train_steps=int(fields["num_train_steps"]), init_from=str(fields["init_from"]),
-        compilation_cache_dir=fields["compilation_cache_dir"],
+        init_from=opts.init_from, compilation_cache_dir=opts.compilation_cache_dir,
         config_json=json.loads(config.to_json_best_effort()))
 
 
@@ -326,3 +360,54 @@ def build_step(run: Run, net: Network, tx, schedule, *, state_sharding=None, bat
                                 num_devices=run.num_devices, state_sharding=state_sharding,
                                 batch_sharding=batch_sharding)
     return make_train_step(net, run.loss, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The config's fields and their meanings (`bridge-train --list-config`)
+# ----------------------------------------------------------------------------------------------------------
+
+def _line_comments(cls) -> dict[str, str]:
+    """{field: the comment that ends its line in `cls`'s source} (a field's one line of meaning)."""
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):  # no source shipped: the listing still has every field, without meanings
+        return {}
+    comments = {tok.start[0]: tok.string.lstrip("#").strip()
+                for tok in tokenize.generate_tokens(io.StringIO(source).readline) if tok.type == tokenize.COMMENT}
+    body = ast.parse(source).body[0].body
+    return {node.target.id: comments[node.end_lineno] for node in body
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and node.end_lineno in comments}
+
+
+def field_help() -> dict[str, str]:
+    """{dotted config key: one line of meaning} for every field of every section dataclass (`SECTIONS`); a field
+    without a comment on its line maps to ""."""
+    out = {}
+    for section, cls in SECTIONS:
+        comments = _line_comments(cls)
+        for f in dataclasses.fields(cls):
+            out[f"{section}.{f.name}" if section else f.name] = comments.get(f.name, "")
+    return out
+
+
+def list_config(config: ml_collections.ConfigDict) -> str:
+    """Every field of `config` with its value and one line of meaning: the top level, then the sections in the
+    order `model`, `SECTIONS`; the `model` section's keys depend on the model and point to its module."""
+    meanings = field_help()
+    model = config["model"]["name"] if "model" in config and "name" in config["model"] else "?"
+    meanings["model.name"] = f"the network: {' | '.join(models.NAMES)}"
+    order = ["", "model"] + [name for name, _ in SECTIONS if name]
+    keys = sorted(configs.leaf_keys(config), key=lambda k: (order.index(k.rpartition(".")[0])
+                                                            if k.rpartition(".")[0] in order else len(order), k))
+    rows = []
+    for key in keys:
+        node = config
+        for part in key.split("."):
+            node = node[part]
+        if key.startswith("model."):
+            meaning = meanings.get(key) or f"a setting of model {model} (bridge_jax.models.{model.split('_tiny')[0]})"
+        else:
+            meaning = meanings.get(key) or "(not a field of this version: parse refuses or ignores it)"
+        rows.append((key, repr(node), meaning))
+    width = max(len(k) + len(v) + 3 for k, v, _ in rows)
+    return "\n".join(f"{f'{k} = {v}':{width}s}  {m}" for k, v, m in rows)

@@ -1,16 +1,17 @@
-r"""Training: `python -m bridge_jax.train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALUE ...]`.
+r"""Training: `bridge-train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALUE ...]`.
 
-    python -m bridge_jax.train --config=demo --workdir=work/demo          # the README's demo model (~11 min, CPU)
-    python -m bridge_jax.train --config=default --workdir=work/default \
+    bridge-train --config=demo --workdir=work/demo          # the README's demo model (~11 min, CPU)
+    bridge-train --config=default --workdir=work/default \
         --config.data.source=kitti_raw --config.data.data_dir=/data/kitti_raw --config.global_batch=8
-    python -m bridge_jax.train --config=demo --workdir=work/mine \
+    bridge-train --config=demo --workdir=work/mine \
         --config.data.source=folder --config.data.data_dir=my_video \
         --config.data.val_dir=my_video_heldout --config.init_from=demo  # fine-tune the shipped model on your video
-    python -m bridge_jax.train --config=my_config.py:arg --workdir=DIR    # a config file of your own
+    bridge-train --config=my_config.py:arg --workdir=DIR    # a config file of your own
 
 `--config` is a config shipped in the package, by name from any directory (listed below; `:arg` picks a
 variant, e.g. `full2:local`), or the path of a Python file with `get_config(arg)`. `--config.KEY=VALUE`
-overrides any field (dotted, Python literals). A run re-started with the same workdir resumes where it stopped.
+overrides any field (dotted, Python literals); `--list-config [NAME]` prints every field of a config with its
+value and meaning. A run re-started with the same workdir resumes where it stopped.
 
 One run, top to bottom (sections of `train_and_evaluate`): parse and check the config (`setup.parse`) and build
 the data pipeline (nothing is written to the workdir before every input is validated), create model +
@@ -20,7 +21,7 @@ checkpoint path or a shipped model name), then loop: jitted step, guard against 
 checkpoints, metrics.jsonl / TensorBoard / progress bar, periodic validation on held-out data (synthetic frames
 with exact ground truth, or your own held-out frames from `config.data.val_dir`, scored photometrically).
 
-Workdir layout:
+Workdir layout (`bridge_jax.workdir`):
     config.json, model.json         the run's config and the model description (params-only loaders)
     checkpoints/<step>/{state,data} orbax: train state + grain iterator state
     metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
@@ -37,7 +38,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import sys
@@ -48,18 +48,18 @@ from typing import Any, Optional, Sequence
 import jax
 import ml_collections
 import numpy as np
-from tensorboardX import SummaryWriter
 from tqdm import tqdm
 
-from bridge_jax import checkpointing, cli, configs, files, inference, models, network, setup, train_step, visualize
+from bridge_jax import checkpointing, cli, configs, files, inference, models, network, setup, train_step
 from bridge_jax import zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
 from bridge_jax.eval.baselines import zero_method
 from bridge_jax.eval.datasets import Frame, synthetic_frames
 from bridge_jax.eval.methods import ModelMethod
-from bridge_jax.evaluate import score_methods
+from bridge_jax.eval.scoring import score_methods
 from bridge_jax.setup import ConfigError  # noqa: F401  (re-exported: the trainer's user-error type)
+from bridge_jax.workdir import MetricsLogger, last_validation, scalar, write_status
 
 
 class TrainingDiverged(RuntimeError):
@@ -67,89 +67,6 @@ class TrainingDiverged(RuntimeError):
 
 
 EXIT_FINISHED, EXIT_DIVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 75  # 75 = EX_TEMPFAIL: "try again"
-STATUS_JSON = "status.json"
-
-
-# ##########################################################################################################
-# Logging
-# ##########################################################################################################
-
-def _scalar(v) -> float:
-    return float(np.asarray(v))
-
-
-class Logger:
-    """metrics.jsonl + TensorBoard (tensorboardX) on process 0; no-ops elsewhere.
-
-    `resume_step`: the step a resumed run restarts from. Records of later steps (written by the previous run
-    after its last checkpoint, and redone now) are dropped from metrics.jsonl and TensorBoard's events are
-    purged past it, so both read as one run."""
-
-    def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None):
-        self.enabled = enabled
-        self.image_dir = os.path.join(workdir, "images")
-        self.tb = None
-        self.jsonl = None
-        if enabled:
-            path = os.path.join(workdir, "metrics.jsonl")
-            if resume_step is not None:
-                truncate_metrics(path, resume_step)
-            self.tb = SummaryWriter(os.path.join(workdir, "tensorboard"),
-                                    purge_step=None if resume_step is None else int(resume_step) + 1)
-            self.jsonl = open(path, "a")
-
-    def scalars(self, step: int, values: dict, kind: str = "train") -> None:
-        if not self.enabled:
-            return
-        clean = {k: _scalar(v) for k, v in values.items()}
-        rec = {"step": int(step), "kind": kind, "time": time.time(), **clean}
-        self.jsonl.write(json.dumps(rec, allow_nan=True) + "\n")
-        self.jsonl.flush()
-        for k, v in clean.items():
-            if math.isfinite(v):
-                self.tb.add_scalar(k if "/" in k and kind == "train" else f"{kind}/{k}", v, int(step))
-
-    def record(self, step: int, kind: str, payload: dict) -> None:
-        """A non-scalar event (e.g. the data-skip report) in metrics.jsonl only."""
-        if self.enabled:
-            self.jsonl.write(json.dumps({"step": int(step), "kind": kind, "time": time.time(), **payload}) + "\n")
-            self.jsonl.flush()
-
-    def image(self, step: int, tag: str, rgb: np.ndarray) -> None:
-        """An RGB uint8 (H, W, 3) picture: TensorBoard (tensorboardX's add_image) and images/<tag>_<step>.png."""
-        if not self.enabled:
-            return
-        rgb = np.ascontiguousarray(np.asarray(rgb, np.uint8))
-        self.tb.add_image(tag, rgb, int(step), dataformats="HWC")
-        os.makedirs(self.image_dir, exist_ok=True)
-        visualize.write_image(os.path.join(self.image_dir, f"{tag.replace('/', '_')}_{int(step):07d}.png"), rgb)
-
-    def close(self) -> None:
-        if self.enabled:
-            self.tb.close()
-            self.jsonl.close()
-
-
-def truncate_metrics(path: str, resume_step: int) -> int:
-    """Drops the records of steps after `resume_step` from the metrics.jsonl at `path` (rewritten atomically);
-    returns how many were dropped. A torn last line (a crash mid-write) is dropped too."""
-    if not os.path.exists(path):
-        return 0
-    kept, dropped = [], 0
-    with open(path) as f:
-        for line in f:
-            try:
-                rec = json.loads(line)
-                keep = int(rec.get("step", 0)) <= resume_step
-            except (json.JSONDecodeError, TypeError, ValueError, AttributeError):
-                keep = False
-            if keep and line.endswith("\n"):
-                kept.append(line)
-            else:
-                dropped += 1
-    if dropped:
-        files.write_text(path, "".join(kept))
-    return dropped
 
 
 # ##########################################################################################################
@@ -187,7 +104,7 @@ def _validation_data(run: setup.Run):
     """What validation runs on: ("synthetic", frames with exact ground truth), ("own", (N, 4, H, W, 3) held-out
     cycles of `config.data.val_dir`, scored photometrically), or None when validation is off. Read before the
     workdir is written, so a bad `val_dir` is one error and nothing else."""
-    if not run.eval.enabled:
+    if not run.validates:
         return None
     if run.data.val_dir:
         try:
@@ -287,7 +204,7 @@ def _global_array(sharding, local: np.ndarray, global_shape):
 class _NonFiniteGuard:
     """Counts skipped (non-finite) steps; too many in a row stop the run with the last good checkpoint named."""
 
-    def __init__(self, max_in_row: int, logger: Logger, ckpt: checkpointing.TrainCheckpointer, is_main: bool):
+    def __init__(self, max_in_row: int, logger: MetricsLogger, ckpt: checkpointing.TrainCheckpointer, is_main: bool):
         self.max_in_row, self.logger, self.ckpt, self.is_main = max_in_row, logger, ckpt, is_main
         self.in_row = self.total = 0
 
@@ -307,7 +224,7 @@ class _NonFiniteGuard:
             last = self.ckpt.latest_step()
             where = f"{self.ckpt.directory}/{last}" if last is not None else "none saved yet"
             raise TrainingDiverged(f"stopping: {self.in_row} non-finite steps in a row at step {step} "
-                                   f"(config.max_nonfinite_in_row={self.max_in_row}); last good checkpoint: {where}")
+                                   f"(config.loop.max_nonfinite_in_row={self.max_in_row}); last good checkpoint: {where}")
         return True
 
 
@@ -382,27 +299,6 @@ class _StopSignals:
 # Train and evaluate
 # ##########################################################################################################
 
-def _write_status(workdir: str, status: str, step: int, **extra) -> None:
-    files.write_json(os.path.join(workdir, STATUS_JSON), {"status": status, "step": int(step), "time": time.time(),
-                                                         **extra})
-
-
-def last_validation(workdir: str) -> dict:
-    """The last "val" record of a workdir's metrics.jsonl (a finished run re-run does not validate again)."""
-    last: dict = {}
-    path = os.path.join(workdir, "metrics.jsonl")
-    if os.path.exists(path):
-        with open(path) as f:
-            for line in f:
-                try:
-                    rec = json.loads(line)
-                except json.JSONDecodeError:
-                    continue
-                if rec.get("kind") == "val":
-                    last = {k: v for k, v in rec.items() if k not in ("kind", "time", "step")}
-    return last
-
-
 def describe_validation(step: int, res: dict) -> str:
     """One line of validation numbers (synthetic ground truth, or photometric on the user's own frames)."""
     parts = []
@@ -466,14 +362,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     state, start_step = _restore(ckpt, state, data_iter, is_main)
     if is_main:
         print(_startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
-        _write_status(workdir, "running", start_step)
+        write_status(workdir, "running", start_step)
 
     ##### Update step and validation ###########################################################################
     step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
     predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
                                     dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                     mesh=mesh)
-    logger = Logger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
+    logger = MetricsLogger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
     global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
     def run_validation(step, log_metrics=True, first_only=False):
@@ -512,14 +408,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 if step % loop.log_every == 0 or step == num_steps:
                     extra = {**meter.window(), "nonfinite_total": guard.total, "epoch": step / steps_per_epoch}
                     logger.scalars(step, {**{k: v for k, v in metrics.items() if k != "nonfinite"}, **extra})
-                    bar.set_postfix(loss=f"{_scalar(metrics['loss']):.4f}", cycles_s=f"{extra['cycles_per_s']:.2f}",
+                    bar.set_postfix(loss=f"{scalar(metrics['loss']):.4f}", cycles_s=f"{extra['cycles_per_s']:.2f}",
                                     refresh=False)
                 bar.update(1)
                 if stop.received is not None:  # no long phase (validation) once asked to stop
                     continue
-                if val_data and run.eval.every > 0 and step % run.eval.every == 0 and step < num_steps:
+                if val_data and loop.eval_every > 0 and step % loop.eval_every == 0 and step < num_steps:
                     val = run_validation(step)
-                elif is_main and run.eval.image_every > 0 and step % run.eval.image_every == 0 and val_data:
+                elif is_main and loop.image_every > 0 and step % loop.image_every == 0 and val_data:
                     run_validation(step, log_metrics=False, first_only=True)
 
             if interrupted:
@@ -529,7 +425,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 val = last_validation(workdir)
             elif val_data:
                 val = run_validation(step)
-            skips = pipeline.skip_report()
+            skips = dataset.skips.report()
             if is_main and skips.get("cycles"):
                 logger.record(step, "data_skips", skips)
                 print(f"data: {skips['cycles']} cycles skipped (unreadable or inconsistent files), e.g. "
@@ -542,13 +438,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
             ckpt.close()
             logger.close()
             if is_main:
-                _write_status(workdir, status, step, **({"signal": int(stop.received)} if interrupted else {}))
+                write_status(workdir, status, step, **({"signal": int(stop.received)} if interrupted else {}))
 
     latest = ckpt.latest_step()
     return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
-            "nonfinite_total": guard.total, "last_metrics": {k: _scalar(v) for k, v in last_metrics.items()},
+            "nonfinite_total": guard.total, "last_metrics": {k: scalar(v) for k, v in last_metrics.items()},
             "validation": val, "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
-            "skipped_data": pipeline.skip_report(), "state": state}
+            "skipped_data": dataset.skips.report(), "state": state}
 
 
 def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:
@@ -557,8 +453,11 @@ def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, 
     cycles = f"{dataset_size} cycles" if dataset_size is not None else "cycles of unknown number"
     val = ("off" if not val_data else f"{len(val_data[1])} {val_data[0]} cycles" if val_data[0] == "synthetic"
            else f"{len(val_data[1])} held-out cycles of {run.data.val_dir}")
-    start = f"resuming at step {start_step}" if start_step else "from scratch" + (
-        f" (params from {run.init_from})" if run.init_from else "")
+    if val_data and val_data[0] == "synthetic" and run.data.source != "synthetic":
+        # training on other data but validating on the built-in synthetic frames: worth saying
+        val += " (synthetic frames, not your data: set --config.data.val_dir for held-out frames of your own)"
+    start = (f"resuming at step {start_step}" if start_step else
+             f"initialised from {run.init_from}" if run.init_from else "from scratch")
     return (f"train: config {config_name or '(given)'} | model {run.model.config['name']} | data {data}: {cycles} | "
             f"validation {val} | {devices} | {run.height}x{run.width}, batch {run.global_batch}, {num_steps} steps, "
             f"{start} | workdir {workdir}")
@@ -605,9 +504,12 @@ def _config_epilog() -> str:
 def build_parser():
     p = cli.make_parser("bridge_jax.train", __doc__)
     p.epilog = (p.epilog or "") + "\n\n" + _config_epilog()
-    p.add_argument("--config", required=True, metavar="NAME[:arg]|FILE.py[:arg]",
-                   help=f"training config: a name ({', '.join(configs.names())}) or a Python file with get_config()")
-    p.add_argument("--workdir", required=True, help="folder for checkpoints, logs and metrics (resumed if it has any)")
+    p.add_argument("--config", metavar="NAME[:arg]|FILE.py[:arg]",
+                   help=f"training config (required): a name ({', '.join(configs.names())}) or a Python file with "
+                        "get_config()")
+    p.add_argument("--workdir", help="folder for checkpoints, logs and metrics (required; resumed if it has any)")
+    p.add_argument("--list-config", nargs="?", const="default", default=None, metavar="NAME",
+                   help="print every field of config NAME (default: default) with its value and meaning, then exit")
     p.add_argument("--verbosity", default="warning", choices=("debug", "info", "warning", "error"),
                    help="log level of the libraries (absl, orbax, grain); info shows orbax's checkpoint messages")
     cli.add_debug_flag(p)
@@ -663,7 +565,7 @@ def _set_verbosity(level: str) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """`python -m bridge_jax.train` / `bridge-train`; returns the exit code (see the module docstring)."""
+    """`bridge-train` / `bridge-train`; returns the exit code (see the module docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     debug = cli.debug_enabled() or "--debug" in argv
@@ -672,6 +574,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except ConfigError as e:
         return cli.report_error(e, debug=debug)
     args = parser.parse_args(rest)
+    if args.list_config is not None:
+        try:
+            print(setup.list_config(load_config(args.list_config, items)))
+        except ConfigError as e:
+            return cli.report_error(e, code=EXIT_BAD_INPUT, debug=args.debug)
+        return EXIT_FINISHED
+    if not args.config or not args.workdir:
+        parser.error("the following arguments are required: " + ", ".join(
+            f"--{n}" for n in ("config", "workdir") if not getattr(args, n)))
     _set_verbosity(args.verbosity)
     try:
         config = load_config(args.config, items)

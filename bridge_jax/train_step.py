@@ -51,15 +51,15 @@ class OptimizerConfig:
     """Adam and its step-based learning-rate schedule (upstream: 1e-4, betas (0.9, 0.999), eps 1e-8, no weight
     decay, the rate multiplied by `lr_decay` at the start of each epoch in `lr_milestones`)."""
 
-    lr: float = 1e-4
-    lr_milestones: tuple[int, ...] = (4, 7, 10, 13)
-    lr_decay: float = 0.5
-    adam_b1: float = 0.9
-    adam_b2: float = 0.999
-    adam_eps: float = 1e-8
+    lr: float = 1e-4  # Adam learning rate
+    lr_milestones: tuple[int, ...] = (4, 7, 10, 13)  # epochs at whose start the lr is multiplied by lr_decay
+    lr_decay: float = 0.5  # lr factor at each milestone
+    adam_b1: float = 0.9  # Adam beta1
+    adam_b2: float = 0.999  # Adam beta2
+    adam_eps: float = 1e-8  # Adam epsilon
     # Clip the gradient to this global L2 norm before Adam (0 = off, the paper). Beyond the paper: large
     # early gradients of a correlation model can otherwise throw its maps far from zero motion.
-    clip_grad_norm: float = 0.0
+    clip_grad_norm: float = 0.0  # clip the gradient to this global L2 norm (0 = off, the paper)
 
     def __post_init__(self):
         if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):

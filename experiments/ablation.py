@@ -82,8 +82,8 @@ def main(argv=None) -> int:
         name, items = parse_variant(text)
         base = ",".join(a for a in (args.base, "resnet_md_tiny" if args.model == "resnet_md_tiny" else "") if a)
         config = configs.load(f"demo:{base}")
-        configs.override(config, items + [f"num_train_steps={args.steps}", f"eval_every={args.steps}",
-                                          "image_every=-1", f"checkpoint_every={args.steps}", "progress_bar=False"])
+        configs.override(config, items + [f"loop.num_train_steps={args.steps}", f"loop.eval_every={args.steps}",
+                                          "loop.image_every=-1", f"loop.checkpoint_every={args.steps}", "loop.progress_bar=False"])
         run = setup.parse(config)
         workdir = os.path.join(args.workdir, f"{args.model}_{name}_{args.steps}")
         t0 = time.time()

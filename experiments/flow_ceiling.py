@@ -3,7 +3,7 @@
 Three measurements on the built-in synthetic data at the demo's 64x128: training cycles are the demo's own
 (base seed 0 = `config.seed`), held-out cycles come from base seed 1 (disjoint from training; the trainer's
 periodic validation uses `config.eval.seed` = 1_000_003 instead, 16 cycles); every EPE is the per-image mean over GT-valid (or noc) pixels, as a ratio
-of the zero-motion EPE. Results: experiments/results/train_bench.md (session 4).
+of the zero-motion EPE. Results: experiments/results/train_bench.md (2026-11-30).
 
   # 1. what position-only guesses and oracles score (no network)
   python experiments/flow_ceiling.py priors
@@ -168,7 +168,7 @@ def matching(args) -> None:
             return s["cycle"][0 if replaced else k]
 
         out[f"disp_epe_{name}"] = mean_epe(
-            val, lambda s: -pred.predict_pair(s["cycle"][0], image_b(s, 1), task="stereo")[..., 0], "disparity")
+            val, lambda s: pred.predict_pair(s["cycle"][0], image_b(s, 1), task="stereo"), "disparity")
         out[f"flow_vs_zero_{name}"] = flow_ratio(val, lambda s: pred.predict_pair(s["cycle"][0], image_b(s, 2), task="flow"))
     out["zero_disp_epe"] = mean_epe(val, zero_disparity, "disparity")
     print(json.dumps({"what": "matching", "workdir": args.workdir, "val_samples": len(val), **out}))

@@ -307,7 +307,7 @@ def test_load_params_workdir_falls_back(tmp_path, how, no_settle):
     BREAKS[how][0](wd)
     with pytest.warns(CheckpointFallbackWarning, match=re.escape(f"{wd / 'checkpoints' / '50'}: skipped a broken")
                       + r".*using the older step 40") as rec:
-        cfg, params = checkpointing.load_params(wd)
+        cfg, params = checkpointing.read_params(wd)
     assert len([w for w in rec if w.category is CheckpointFallbackWarning]) == 1
     assert cfg["name"] == "resnet_md_tiny" and _params_value(params) == 40.0
     assert (wd / "checkpoints" / "50").is_dir()
@@ -318,11 +318,11 @@ def test_load_params_broken_step_dir_is_an_error_naming_it(tmp_path):
     _break_truncate_largest(wd)
     step_dir = wd / "checkpoints" / "50"
     with pytest.raises(ValueError, match=r"^" + re.escape(f"{step_dir}: cannot read {step_dir / 'state'} (")):
-        checkpointing.load_params(step_dir)
+        checkpointing.read_params(step_dir)
     _break_empty_dir(wd)
     with pytest.raises(ValueError, match=r"^" + re.escape(f"{step_dir}: missing state/")):
-        checkpointing.load_params(step_dir)
-    assert _params_value(checkpointing.load_params(wd / "checkpoints" / "40")[1]) == 40.0
+        checkpointing.read_params(step_dir)
+    assert _params_value(checkpointing.read_params(wd / "checkpoints" / "40")[1]) == 40.0
 
 
 def test_load_params_all_steps_broken(tmp_path, no_settle):
@@ -331,21 +331,21 @@ def test_load_params_all_steps_broken(tmp_path, no_settle):
     shutil.rmtree(wd / "checkpoints" / "40" / "state")
     with pytest.raises(ValueError, match=r"^" + re.escape(
             f"{wd / 'checkpoints'}: no readable checkpoint step; the newest, 50, is broken (missing state/")):
-        checkpointing.load_params(wd)
+        checkpointing.read_params(wd)
 
 
 def test_load_params_does_not_refuse_nan_unless_asked(tmp_path, no_settle):
     wd = _model_workdir(tmp_path, nan_at=50)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CheckpointFallbackWarning)
-        _, params = checkpointing.load_params(wd)  # evaluating a diverged run is legitimate
+        _, params = checkpointing.read_params(wd)  # evaluating a diverged run is legitimate
     assert np.isnan(np.asarray(params["up3"]["conv2"]["kernel"])).sum() == 2
     with pytest.warns(CheckpointFallbackWarning, match=r"params not finite: up3/conv2/kernel has 2 non-finite"):
-        _, params = checkpointing.load_params(wd, require_finite=True)
+        _, params = checkpointing.read_params(wd, require_finite=True)
     assert _params_value(params) == 40.0
     with pytest.raises(ValueError, match=r"^" + re.escape(
             f"{wd / 'checkpoints' / '50'}: params not finite: up3/conv2/kernel has 2 non-finite values")):
-        checkpointing.load_params(wd / "checkpoints" / "50", require_finite=True)
+        checkpointing.read_params(wd / "checkpoints" / "50", require_finite=True)
 
 
 # ---------------------------------------------------------------------- load_params racing a live run's clean-up
@@ -376,7 +376,7 @@ def test_load_params_step_deleted_between_resolve_and_read(tmp_path, monkeypatch
     calls = _patch_restore(monkeypatch, delete_first)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CheckpointFallbackWarning)  # a deleted step is not a broken one
-        _, params = checkpointing.load_params(wd)
+        _, params = checkpointing.read_params(wd)
     assert calls == ["50", "40"] and _params_value(params) == 40.0
 
 
@@ -393,7 +393,7 @@ def test_load_params_re_resolves_to_a_newer_step_not_an_older_one(tmp_path, monk
             raise FileNotFoundError(2, "No such file or directory", str(step_dir / "state"))
 
     calls = _patch_restore(monkeypatch, swap_first)
-    _, params = checkpointing.load_params(wd)
+    _, params = checkpointing.read_params(wd)
     assert calls == ["50", "60"] and _params_value(params) == 60.0
 
 
@@ -408,7 +408,7 @@ def test_load_params_missing_file_that_stays_missing_is_broken(tmp_path, monkeyp
     calls = _patch_restore(monkeypatch, fail_50)
     with pytest.warns(CheckpointFallbackWarning, match=r"checkpoints/50: skipped a broken checkpoint "
                       r"\(FileNotFoundError: \[Errno 2\] No such file or directory: "):
-        _, params = checkpointing.load_params(wd)
+        _, params = checkpointing.read_params(wd)
     assert calls == ["50", "50", "40"] and _params_value(params) == 40.0
 
 
@@ -422,7 +422,7 @@ def test_load_params_gives_up_after_three_listings_that_keep_changing(tmp_path, 
     calls = _patch_restore(monkeypatch, renumber)
     with pytest.raises(ValueError, match=r"^" + re.escape(f"{wd / 'checkpoints'}: checkpoint steps kept changing "
                                                           "(deleted while being read) in 3 attempts")):
-        checkpointing.load_params(wd)
+        checkpointing.read_params(wd)
     assert calls == ["50", "51", "52"]
 
 

@@ -104,10 +104,10 @@ def test_params_readers_accept_training_workdir(tmp_path, caplog):
     params = checkpointing.restore_train_params(checkpointing.find_train_step_dir(str(tmp_path)))
     _assert_tree_equal(params, state["params"])
     with caplog.at_level(logging.WARNING):
-        cfg, params2 = checkpointing.load_params(str(tmp_path))  # the params-only loader (evaluate / export)
+        cfg, params2 = checkpointing.read_params(str(tmp_path))  # the params-only loader (evaluate / export)
     # orbax's "Metadata file does not exist" for the item dir checkpoints/5/state is silenced (file is one up)
     assert not [r for r in caplog.records if "Metadata file" in r.getMessage()], caplog.text
     assert cfg["name"] == "resnet_md_tiny"
     _assert_tree_equal(params2, state["params"])
     with pytest.raises(ValueError):
-        checkpointing.load_params(str(tmp_path / "missing"))
+        checkpointing.read_params(str(tmp_path / "missing"))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from bridge_jax import cli
 from tests.train_helpers import REPO
 
 ENTRY_POINTS = ["bridge_jax.train", "bridge_jax.evaluate", "bridge_jax.predict", "bridge_jax.bench.cli",
@@ -19,8 +20,10 @@ def test_help_has_an_example_and_every_option_explained(module):
     parser = importlib.import_module(module).build_parser()
     text = parser.format_help()
     prog = "bridge_jax.bench" if module == "bridge_jax.bench.cli" else module.replace(".__main__", "")
-    # an indented example line (not the usage line) from the docstring's epilog
-    assert re.search(rf"^\s+python -m {re.escape(prog)}\s+\S", text, re.M), f"{module}: no example in --help"
+    command = cli.COMMANDS[prog]
+    assert text.startswith(f"usage: {command} "), f"{module}: the usage line does not name {command}"
+    # an indented example line (not the usage line) from the docstring's epilog, naming the console command
+    assert re.search(rf"^\s+{re.escape(command)}\s+\S", text, re.M), f"{module}: no example in --help"
     for action in parser._actions:
         if action.option_strings and action.dest != "help":
             assert action.help, f"{module}: {action.option_strings} has no help text"
@@ -30,6 +33,9 @@ def test_every_entry_point_is_a_console_command():
     scripts = tomllib.loads(Path(REPO, "pyproject.toml").read_text())["project"]["scripts"]
     targets = {v.split(":")[0] for v in scripts.values()}
     assert targets == set(ENTRY_POINTS), targets ^ set(ENTRY_POINTS)
+    named = {cli.COMMANDS["bridge_jax.bench" if t == "bridge_jax.bench.cli" else t.replace(".__main__", "")]: t
+             for t in targets}
+    assert named == {name: target.split(":")[0] for name, target in scripts.items()}  # usage lines name them right
     for target in scripts.values():
         module, func = target.split(":")
         assert callable(getattr(importlib.import_module(module), func)), target

@@ -200,7 +200,7 @@ def test_round_trip_first_layers_match_numpy(tmp_path, layout):
     out = tmp_path / "converted"
     assert convert.main(["--from", str(src), "--out", str(out)]) == 0
     assert not marker.exists()
-    cfg, params = checkpointing.load_params(out)
+    cfg, params = checkpointing.read_params(out)
     assert cfg["name"] == "resnet_md_tiny"
     # bridge_jax forward (NHWC) vs numpy forward in PyTorch layout straight from the state dict
     x = rng.uniform(size=(1, 6, 64, 128))
@@ -291,8 +291,8 @@ def test_cli_help_has_an_example_and_every_option_a_help_text(capsys):
         convert.main(["--help"])
     assert e.value.code == 0
     text = capsys.readouterr().out
-    assert text.startswith("usage: python -m bridge_jax.convert ")
-    assert "\n    python -m bridge_jax.convert --from monodepth_ver_a.pth --out checkpoints/ver_a\n" in text
+    assert text.startswith("usage: bridge-convert ")
+    assert "\n    bridge-convert --from monodepth_ver_a.pth --out checkpoints/ver_a\n" in text
     actions = [a for a in convert.build_parser()._actions if a.option_strings]
     assert {a.dest for a in actions} == {"help", "src", "out", "model", "overwrite", "debug"}
     assert [a.dest for a in actions if not a.help] == []  # argparse keeps None where help= was left out

@@ -239,22 +239,33 @@ def _bad_folder(root):
 
 def _check_report_after_three_epochs(tmp_path, num_workers):
     truncated, odd = _bad_folder(tmp_path)
-    pipeline.reset_skip_counts()
     cfg = _folder_cfg(tmp_path, num_epochs=3, num_workers=num_workers)
     ds = pipeline.make_train_dataset(cfg, global_batch=1, seed=0, height=8, width=12, process_index=0,
                                      process_count=1)
-    assert pipeline.prescan_report() == {
+    assert ds.skips.prescan_report() == {
         "cycles": 2, "files": [odd],
         "causes": {odd: f"left and right differ in size: {odd} is 10x14, {odd.replace('left', 'right')} is 8x12"}}
     batches = list(ds)
     assert len(batches) == 3 * 5 and all(set(b) == {"cycle"} for b in batches)   # 5 kept cycles, 3 epochs
-    rep = pipeline.skip_report()
+    rep = ds.skips.report()
     assert rep["cycles"] == 4 and rep["files"] == sorted([truncated, odd])
     assert rep["causes"][truncated] == "truncated PNG (no IEND chunk at the end)"
     assert rep["causes"][odd].startswith("left and right differ in size: ")
-    assert pipeline.skip_counts() == {"count": 4, "paths": sorted([truncated, odd])}
-    pipeline.reset_skip_counts()
-    assert pipeline.skip_report() == {"cycles": 0, "files": [], "causes": {}}
+
+
+def test_a_second_dataset_in_the_process_reports_only_its_own_skips(tmp_path):
+    """The skip log belongs to the dataset: a second run in one process does not report the first run's skips."""
+    _bad_folder(tmp_path / "bad")
+    first = pipeline.make_train_dataset(_folder_cfg(tmp_path / "bad", num_epochs=1), global_batch=1, seed=0,
+                                        height=8, width=12, process_index=0, process_count=1)
+    list(first)
+    assert first.skips.report()["cycles"] == 4
+    write_stereo_sequence(str(tmp_path / "good"), TEN[:4])
+    second = pipeline.make_train_dataset(_folder_cfg(tmp_path / "good", num_epochs=1), global_batch=1, seed=0,
+                                         height=8, width=12, process_index=0, process_count=1)
+    list(second)
+    assert second.skips.report() == {"cycles": 0, "files": [], "causes": {}}
+    assert first.skips.report()["cycles"] == 4
 
 
 def test_skip_report_counts_each_cycle_once_over_epochs(tmp_path, caplog):

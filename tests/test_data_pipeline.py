@@ -188,31 +188,27 @@ def test_corrupt_and_missing_images_skipped_counted_logged(tmp_path, caplog):
     os.remove(os.path.join(data, "image_02", "data", "0000000004.png"))   # removes frame 4 from the listing
     src = pipeline.make_source(pipeline.DataConfig(source="kitti_raw", data_dir=root, split="all"))
     assert len(src) == 3                                           # cycles 0, 1, 2 (3 and 4 need frame 4)
-    pipeline.reset_skip_counts()
     loader = pipeline.LoadCycle(src)
     with caplog.at_level(logging.WARNING):
         got = [loader(i)["id"] for i in range(3)]
     assert got == ["2011_09_26_drive_0001/0000000000"] * 3          # 1 and 2 replaced by the next valid (0)
-    counts = pipeline.skip_counts()
-    assert counts["count"] == 2 and counts["paths"] == [bad]       # cycles 1 and 2, each once
-    rep = pipeline.skip_report()
-    assert rep["cycles"] == 2 and rep["files"] == [bad] and "truncated PNG" in rep["causes"][bad]
+    rep = loader.skips.report()
+    assert rep["cycles"] == 2 and rep["files"] == [bad] and "truncated PNG" in rep["causes"][bad]  # each once
     assert [loader(i)["id"] for i in (1, 2)] == ["2011_09_26_drive_0001/0000000000"] * 2
-    assert pipeline.skip_report()["cycles"] == 2                  # met again: not counted again
+    assert loader.skips.report()["cycles"] == 2                   # met again: not counted again
     assert bad in caplog.text
     # A missing file that is listed (deleted after listing) is skipped the same way.
     os.remove(os.path.join(data, "image_02", "data", "0000000000.png"))
     with pytest.raises(RuntimeError, match="unreadable"):
         loader(0)
     # Through the dataset: no crash, every batch holds the valid cycle, and the skips are counted.
-    pipeline.reset_skip_counts()
     ds = pipeline.make_train_dataset(pipeline.DataConfig(augment=False), global_batch=1, seed=0, height=8, width=12,
                                      process_index=0, process_count=1,
                                      source=pipeline.FileCycleSource(_valid_plus_corrupt(root), root))
     it = iter(ds)
     out = [next(it)["cycle"] for _ in range(4)]
     assert all(o.shape == (1, 4, 8, 12, 3) and np.allclose(o, 7 / 255) for o in out)
-    rep = pipeline.skip_report()
+    rep = ds.skips.report()
     assert rep["cycles"] == 1 and rep["files"] == [os.path.join(root, "bad.png")]   # met twice, counted once
 
 

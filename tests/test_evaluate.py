@@ -242,7 +242,7 @@ def test_help_teaches():
     parser = evaluate.build_parser()
     assert [a.option_strings for a in parser._actions if not a.help] == []
     text = parser.format_help()
-    assert "python -m bridge_jax.evaluate --checkpoint" in text and "pictures/<frame id>.png" in text
+    assert "bridge-evaluate --checkpoint" in text and "pictures/<frame id>.png" in text
     assert "shipped model name such as demo" in text and "--debug" in text
     # the flags parse as documented
     args = parser.parse_args(["--dataset", "synthetic", "--data-dir", "d"])

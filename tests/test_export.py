@@ -70,5 +70,5 @@ def test_export_help():
     parser = export.build_parser()
     assert [a.option_strings for a in parser._actions if not a.help] == []
     text = parser.format_help()
-    assert "python -m bridge_jax.export --checkpoint demo --out demo.stablehlo" in text
+    assert "bridge-export --checkpoint demo --out demo.stablehlo" in text
     assert "shipped model name such as demo" in text and "--debug" in text

@@ -130,6 +130,18 @@ def test_predict_cycle_consistent_with_pairs(predictor, rng):
     np.testing.assert_allclose(batch[1], predictor.predict_pair(imgs[1], imgs[3]), atol=1e-5)
 
 
+def test_a_stereo_pair_gives_disparity_everywhere(predictor, rng):
+    """One resize rule per task: predict_pair / predict_pairs of a stereo pair give the disparity that predict
+    and predict_cycle give (the disparity rule), not a flow-rule map."""
+    left, right = (rng.integers(0, 256, size=(70, 150, 3), dtype=np.uint8) for _ in range(2))
+    disp = predictor.predict_pair(left, right, task="stereo")
+    assert disp.shape == (70, 150)
+    np.testing.assert_allclose(disp, predictor.predict([("stereo", left, right)])[0], atol=1e-5)
+    np.testing.assert_allclose(predictor.predict_pairs([left, left], [right, right], task="stereo")[1], disp,
+                               atol=1e-5)
+    np.testing.assert_allclose(disp, predictor.predict_cycle(left, right, left, right)["disp_t"], atol=1e-5)
+
+
 def test_network_output_matches_apply(predictor, tiny, rng):
     """The full path at the working size equals models.apply on the same pair (no resize when sizes match)."""
     graphdef, params = tiny

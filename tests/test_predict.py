@@ -289,6 +289,6 @@ def test_help_teaches():
     missing = [opts for opts, text in _help_lines(parser) if not text]
     assert missing == []
     text = parser.format_help()
-    assert "python -m bridge_jax.predict --checkpoint" in text            # the docstring's examples are the epilog
+    assert "bridge-predict --checkpoint" in text            # the docstring's examples are the epilog
     assert "flow_flo/<stem>.flo" in text and "mapping" in text
     assert "shipped model name such as demo" in text and "--debug" in text

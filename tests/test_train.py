@@ -21,6 +21,7 @@ import pytest
 from bridge_jax import checkpointing, setup, train, train_step
 from bridge_jax.configs import default as default_config
 from bridge_jax.micro_batch import MicroBatchedStep
+from bridge_jax.workdir import STATUS_JSON
 from tests.train_helpers import (H, W, REPO, enable_compilation_cache, make_step, plain_loss_and_grads, subprocess_env,
                                  tiny_config, train_cli)
 
@@ -82,8 +83,8 @@ def _record_batches(monkeypatch):
 def fixed_batch_run(tmp_path_factory):
     """6 steps on a fixed batch (2 cycles, no augmentation, lr 1e-3), validation and pictures at the end."""
     workdir = str(tmp_path_factory.mktemp("run") / "wd")
-    cfg = tiny_config(**{"num_train_steps": 6, "lr": 1e-3, "data.synthetic_num": 2, "data.augment": False,
-                         "eval_every": 0, "image_every": 3})
+    cfg = tiny_config(**{"loop.num_train_steps": 6, "lr": 1e-3, "data.synthetic_num": 2, "data.augment": False,
+                         "loop.eval_every": 0, "loop.image_every": 3})
     before = train_step.TRACE_COUNTS["train_step"]
     result = train.train_and_evaluate(cfg, workdir)
     return workdir, result, train_step.TRACE_COUNTS["train_step"] - before
@@ -114,7 +115,7 @@ def test_train_and_evaluate_end_to_end(fixed_batch_run):
     assert len(os.listdir(os.path.join(workdir, "images"))) >= 2
     assert traces == 1  # one trace for the whole run
     # the checkpoint is readable by the params-only loader (evaluate/export path)
-    cfg, params = checkpointing.load_params(workdir)
+    cfg, params = checkpointing.read_params(workdir)
     assert cfg["name"] == "resnet_md_tiny"
     assert _params_close(params, result["state"]["params"], 0.0)
 
@@ -358,7 +359,8 @@ def _train_steps_logged(workdir):
 
 def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
     wd = str(tmp_path / "wd")
-    proc = subprocess.Popen(train_cli(wd, "--config.num_train_steps=10000", "--config.checkpoint_every=10000"),
+    proc = subprocess.Popen(train_cli(wd, "--config.loop.num_train_steps=10000",
+                                      "--config.loop.checkpoint_every=10000"),
                             env=subprocess_env(8), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _wait_for(lambda: _train_steps_logged(wd) >= 2, proc, 400), proc.communicate()[1][-3000:]
@@ -371,7 +373,7 @@ def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
     assert "interrupted; checkpoint saved" in out
     steps = [int(s) for s in os.listdir(os.path.join(wd, "checkpoints"))]
     assert len(steps) == 1 and steps[0] >= 2
-    status = json.load(open(os.path.join(wd, train.STATUS_JSON)))
+    status = json.load(open(os.path.join(wd, STATUS_JSON)))
     assert status == {**status, "status": "interrupted", "step": steps[0], "signal": int(signal.SIGTERM)}
 
 
@@ -379,7 +381,7 @@ def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
 def test_sigkill_then_restart_resumes(tmp_path):
     """Killed hard mid-run (async checkpoints in flight), restarted: same final params as an unbroken run."""
     wd = str(tmp_path / "wd")
-    args = ("--config.num_train_steps=8", "--config.checkpoint_every=2")
+    args = ("--config.loop.num_train_steps=8", "--config.loop.checkpoint_every=2")
     proc = subprocess.Popen(train_cli(wd, *args), env=subprocess_env(8), cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -394,7 +396,7 @@ def test_sigkill_then_restart_resumes(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Resuming from" in r.stdout
     ref = train.train_and_evaluate(tiny_config(num_train_steps=8), str(tmp_path / "ref"))
-    _, params = checkpointing.load_params(wd)
+    _, params = checkpointing.read_params(wd)
     assert _params_close(params, ref["state"]["params"], 1e-6)
 
 
@@ -408,7 +410,7 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    common = ("--config.num_train_steps=2", "--config.data.augment=False", "--config.checkpoint_every=2",
+    common = ("--config.loop.num_train_steps=2", "--config.data.augment=False", "--config.loop.checkpoint_every=2",
               "--config.distributed.enabled=True", f"--config.distributed.coordinator_address=127.0.0.1:{port}",
               "--config.distributed.num_processes=2", "--config.num_devices=-1")
     wd = str(tmp_path / "multi")
@@ -419,12 +421,12 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err[-3000:]
     # the same run in one process over 2 devices (= the same global batches: augmentation off)
-    r = subprocess.run(train_cli(str(tmp_path / "single"), "--config.num_train_steps=2", "--config.data.augment=False",
-                                 "--config.checkpoint_every=2"), env=subprocess_env(2), cwd=REPO,
+    r = subprocess.run(train_cli(str(tmp_path / "single"), "--config.loop.num_train_steps=2",
+                                 "--config.data.augment=False", "--config.loop.checkpoint_every=2"), env=subprocess_env(2), cwd=REPO,
                        capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
-    _, multi = checkpointing.load_params(wd)
-    _, single = checkpointing.load_params(str(tmp_path / "single"))
+    _, multi = checkpointing.read_params(wd)
+    _, single = checkpointing.read_params(str(tmp_path / "single"))
     assert _params_close(multi, single, 1e-5)
     data_files = os.listdir(os.path.join(wd, "checkpoints", "2", "data"))
     assert "process_0-of-2.json" in data_files and "process_1-of-2.json" in data_files

@@ -16,6 +16,7 @@ import optax
 import pytest
 
 from bridge_jax import train, train_step
+from bridge_jax.workdir import STATUS_JSON, truncate_metrics
 from tests.train_helpers import enable_compilation_cache, subprocess_env, tiny_config
 
 
@@ -78,7 +79,7 @@ def test_help_shows_examples_configs_sources_and_layouts(capsys):
         train.main(["--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    assert "python -m bridge_jax.train --config=demo --workdir=work/demo" in out
+    assert "bridge-train --config=demo --workdir=work/demo" in out and "--list-config" in out
     for name in ("default", "demo", "full2", "no_sharing", "stereo_only"):
         assert f"\n  {name} " in out, name
     assert "Data sources" in out and "folder" in out and "left/" in out and "right/" in out
@@ -123,9 +124,9 @@ def test_truncate_metrics_drops_later_steps_and_torn_lines(tmp_path):
     lines = [json.dumps({"step": s, "kind": k}) for s, k in ((1, "train"), (2, "train"), (2, "val"), (3, "train"),
                                                              (4, "train"))]
     path.write_text("\n".join(lines) + "\n" + '{"step": 5, "ki')
-    assert train.truncate_metrics(str(path), 2) == 3
+    assert truncate_metrics(str(path), 2) == 3
     assert [(r["step"], r["kind"]) for r in _jsonl(path)] == [(1, "train"), (2, "train"), (2, "val")]
-    assert train.truncate_metrics(str(path), 2) == 0
+    assert truncate_metrics(str(path), 2) == 0
 
 
 def test_resume_after_lost_steps_and_rerun_of_a_finished_run_do_not_repeat_records(tmp_path):
@@ -141,7 +142,7 @@ def test_resume_after_lost_steps_and_rerun_of_a_finished_run_do_not_repeat_recor
     recs = _jsonl(os.path.join(wd, "metrics.jsonl"))
     assert [r["step"] for r in recs if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
     assert [r["step"] for r in recs if r["kind"] == "val"] == [6]
-    status = json.load(open(os.path.join(wd, train.STATUS_JSON)))
+    status = json.load(open(os.path.join(wd, STATUS_JSON)))
     assert status["status"] == "finished" and status["step"] == 6
 
 
@@ -186,7 +187,7 @@ def test_stop_request_skips_the_validation_of_that_step(tmp_path, monkeypatch):
     recs = _jsonl(os.path.join(wd, "metrics.jsonl"))
     assert [r["step"] for r in recs if r["kind"] == "val"] == [1]
     assert sorted(os.listdir(os.path.join(wd, "checkpoints"))) == ["2"]
-    assert json.load(open(os.path.join(wd, train.STATUS_JSON)))["status"] == "interrupted"
+    assert json.load(open(os.path.join(wd, STATUS_JSON)))["status"] == "interrupted"
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -197,8 +198,8 @@ def test_cli_by_name_from_another_directory_is_quiet_and_says_what_it_runs(tmp_p
     wd = tmp_path / "wd"
     cmd = [sys.executable, "-m", "bridge_jax.train", "--config=default:local", f"--workdir={wd}",
            "--config.height=64", "--config.width=128", "--config.num_devices=2", "--config.global_batch=2",
-           "--config.micro_batch=0", "--config.num_train_steps=2", "--config.checkpoint_every=1",
-           "--config.eval_every=-1", "--config.image_every=-1", "--config.progress_bar=False",
+           "--config.micro_batch=0", "--config.loop.num_train_steps=2", "--config.loop.checkpoint_every=1",
+           "--config.loop.eval_every=-1", "--config.loop.image_every=-1", "--config.loop.progress_bar=False",
            "--config.data.synthetic_num=8", "--config.data.prefetch=0"]
     r = subprocess.run(cmd, cwd=tmp_path, env=subprocess_env(2), capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -208,7 +209,7 @@ def test_cli_by_name_from_another_directory_is_quiet_and_says_what_it_runs(tmp_p
     start = [line for line in r.stdout.splitlines() if line.startswith("train: ")]
     assert len(start) == 1 and "config default:local" in start[0] and "data synthetic: 8 cycles" in start[0]
     assert "2 cpu devices" in start[0] and str(wd) in start[0]
-    assert json.load(open(wd / train.STATUS_JSON))["status"] == "finished"
+    assert json.load(open(wd / STATUS_JSON))["status"] == "finished"
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -286,3 +287,17 @@ def test_override_names_close_matches_for_every_caller():
         bench_cli.load_config("demo", ["loss.two_wrap=full2"])
     with pytest.raises(ValueError, match=r"no field 'zzz'$"):  # nothing close: no hint
         configs.override(configs.load("demo"), ["zzz=1"])
+
+
+def test_the_start_line_says_where_params_and_validation_come_from(tmp_path):
+    """A fine-tune is "initialised from" its model, and training on other data without `data.val_dir` says that
+    it validates on synthetic frames."""
+    from bridge_jax import setup
+    run = setup.parse(tiny_config(**{"init_from": "demo", "data.source": "folder", "data.data_dir": str(tmp_path)}),
+                      devices=jax.devices()[:1])
+    line = train._startup_line(run, "demo", 8, ("synthetic", [None] * 2), str(tmp_path), 0, 4)
+    assert "initialised from demo" in line and "from scratch" not in line
+    assert "synthetic frames, not your data" in line and "--config.data.val_dir" in line
+    plain = setup.parse(tiny_config(), devices=jax.devices()[:1])
+    line = train._startup_line(plain, "default", None, ("synthetic", [None] * 2), str(tmp_path), 0, 4)
+    assert "from scratch" in line and "not your data" not in line

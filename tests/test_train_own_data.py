@@ -43,7 +43,7 @@ def test_own_video_trains_validates_photometrically_and_reports_skipped_cycles(t
     _write_video(str(val_dir), 4, seed=4)
     truncate_file(str(train_dir / "right" / "0005.png"), keep=0.5)  # decodes badly at run time
     wd = str(tmp_path / "wd")
-    cfg = tiny_config(**{"num_train_steps": 4, "eval_every": 2, "data.source": "folder",
+    cfg = tiny_config(**{"loop.num_train_steps": 4, "loop.eval_every": 2, "data.source": "folder",
                          "data.data_dir": str(train_dir), "data.val_dir": str(val_dir), "data.augment": False,
                          "eval.num_samples": 8})
     res = train.train_and_evaluate(cfg, wd)
@@ -70,7 +70,7 @@ def test_bad_val_dir_and_mismatched_frame_sizes_are_one_error_and_nothing_is_wri
     _write_video(str(train_dir), 4, seed=3)
     wd = tmp_path / "wd"
     cfg = tiny_config(**{"data.source": "folder", "data.data_dir": str(train_dir),
-                         "data.val_dir": str(tmp_path / "missing"), "eval_every": 2})
+                         "data.val_dir": str(tmp_path / "missing"), "loop.eval_every": 2})
     with pytest.raises(train.ConfigError, match="config.data.val_dir"):
         train.train_and_evaluate(cfg, str(wd))
     assert not wd.exists()
@@ -97,13 +97,13 @@ def test_readme_walkthrough_own_video_fine_tune_then_predict(tmp_path):
     env = subprocess_env(1)
     r = subprocess.run([sys.executable, "-m", "bridge_jax.train", "--config=demo", "--workdir=work/mine_ft",
                         "--config.init_from=demo", "--config.data.source=folder", "--config.data.data_dir=my_video",
-                        "--config.data.val_dir=my_video_heldout", "--config.num_train_steps=2",
-                        "--config.eval_every=1", "--config.progress_bar=False"],
+                        "--config.data.val_dir=my_video_heldout", "--config.loop.num_train_steps=2",
+                        "--config.loop.eval_every=1", "--config.loop.progress_bar=False"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     lines = r.stdout.splitlines()
     assert any(line.startswith("step 1 validation: flow photometric error") for line in lines), r.stdout
-    assert "(params from demo)" in lines[0] or any("(params from demo)" in line for line in lines)
+    assert any("initialised from demo" in line for line in lines), r.stdout
     r = subprocess.run([sys.executable, "-m", "bridge_jax.predict", "--checkpoint", "work/mine_ft",
                         "my_video_heldout", "--out", "out"], cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=300)

@@ -35,7 +35,7 @@ def test_all_variant_files_present():
 @pytest.mark.parametrize("name", VARIANTS)
 def test_config_builds_and_documents_its_command_line(name):
     mod = _load(name)
-    assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge_jax.demo" in mod.__doc__)
+    assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge-demo" in mod.__doc__)
     cfg = mod.get_config()
     run = setup.parse(cfg, devices=jax.devices()[:1])
     setup.parse(cfg, devices=jax.devices()[:2])
@@ -50,7 +50,7 @@ def test_config_builds_and_documents_its_command_line(name):
     if name not in ("demo",):
         # paper settings: 512x256, 2 cycles, Adam 1e-4 halved at epochs 4, 7, 10, 13, 80 epochs
         assert (run.height, run.width, run.global_batch, run.optimizer.lr, run.optimizer.lr_milestones,
-                run.num_epochs) == (256, 512, 2, 1e-4, (4, 7, 10, 13), 80)
+                run.loop.num_epochs) == (256, 512, 2, 1e-4, (4, 7, 10, 13), 80)
         assert (lcfg.lambda_sm, lcfg.lambda_lr) == (10.0, 0.5)
         local = mod.get_config("local")
         setup.parse(local, devices=jax.devices()[:1])

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from bridge_jax import checkpointing, inference, setup, train, zoo
+from bridge_jax import checkpointing, configs, inference, setup, train, zoo
 from bridge_jax.configs import demo as demo_config
 from bridge_jax.data import synthetic
 from tests.train_helpers import REPO
@@ -31,11 +31,14 @@ def test_shipped_demo_matches_the_current_demo_config():
     """When the demo config changes, the shipped weights must be regenerated (this test says how)."""
     meta = zoo.info("demo")
     run = setup.parse(demo_config.get_config(), devices=jax.devices()[:1])
-    how = "retrain with `make demo` and run `python -m bridge_jax.zoo build demo --from work/demo/train`"
+    how = "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"
     assert meta["model"] == json.loads(json.dumps(run.model.model_json())), how
     # every setting the shipped run recorded still has that value (fields added since keep the old behaviour
     # by default, so they do not call for retraining)
-    assert _changed(meta["config"], json.loads(json.dumps(run.config_json))) == [], how
+    recorded = dict(meta["config"])  # a run of an earlier release recorded the loop fields at the top level
+    moved = {k: recorded.pop(k) for k in configs.MOVED_KEYS if k in recorded}
+    recorded["loop"] = dict(recorded.get("loop", {}), **moved)
+    assert _changed(recorded, json.loads(json.dumps(run.config_json))) == [], how
     assert (meta["height"], meta["width"]) == (run.height, run.width)
     data = (zoo.ZOO_DIR / "demo.npz").read_bytes()
     assert hashlib.sha256(data).hexdigest() == meta["sha256"]
@@ -81,7 +84,7 @@ def test_unknown_and_missing_names_are_one_clear_error(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"'dmeo' is neither an existing path nor a model name \(did you mean demo"):
         inference.load_predictor("dmeo")
     monkeypatch.setenv(zoo.HOME_ENV, str(tmp_path))
-    with pytest.raises(ValueError, match=r"upstream_ver_b.*not on this machine.*bridge_jax.convert --from "
+    with pytest.raises(ValueError, match=r"upstream_ver_b.*not on this machine.*bridge-convert --from "
                                          r"monodepth_ver_b.pth --out " + str(tmp_path)):
         zoo.load_params("upstream_ver_b")
     # a path-like spec is never looked up in the registry
@@ -122,3 +125,13 @@ def test_predict_with_the_shipped_model_from_another_directory(tmp_path):
     epe = np.linalg.norm(flow - gt, axis=-1)[valid].mean()
     zero = np.linalg.norm(gt, axis=-1)[valid].mean()
     assert epe < 0.8 * zero, (epe, zero)
+
+
+def test_the_listing_says_how_to_get_weights_that_are_not_converted_yet(tmp_path, monkeypatch, capsys):
+    from bridge_jax.zoo.__main__ import main
+    monkeypatch.setenv(zoo.HOME_ENV, str(tmp_path))
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("upstream_ver_a"))
+    assert "not converted yet" in line and "bridge-convert --from monodepth_ver_a.pth" in line
+    assert str(tmp_path / "upstream_ver_a") in line

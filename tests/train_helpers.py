@@ -15,7 +15,7 @@ import tempfile
 import jax
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import losses, models, network, train_step
+from bridge_jax import configs, losses, models, network, train_step
 from bridge_jax.configs import default
 from bridge_jax.micro_batch import MicroBatchedStep
 
@@ -43,24 +43,21 @@ def enable_compilation_cache():
 
 
 def tiny_config(**overrides):
-    """default.py:local shrunk to a few 64x128 steps of the tiny ResNet-MD (2 cycles on 2 devices), no validation."""
+    """default.py:local shrunk to a few 64x128 steps of the tiny ResNet-MD (2 cycles on 2 devices), no validation.
+    `overrides`: dotted keys; the fields of the `loop` section also by their own names."""
     c = default.get_config("local")
     c.height, c.width = H, W
     c.num_devices = 2  # of the 8 fake CPU devices: sharded, but a cheap step
     c.global_batch = 2
     c.micro_batch = 0
-    c.num_train_steps = 4
-    c.steps_per_epoch = 100
-    c.checkpoint_every = 2
-    c.log_every = 1
-    c.image_every = -1
-    c.eval_every = -1
+    c.loop.update(num_train_steps=4, steps_per_epoch=100, checkpoint_every=2, log_every=1, image_every=-1,
+                  eval_every=-1, progress_bar=False)
     c.eval.num_samples = 2
     c.eval.batch = 2
-    c.progress_bar = False
     c.data.synthetic_num = 32
     c.data.prefetch = 0
     for key, value in overrides.items():
+        key = configs.MOVED_KEYS.get(key, key)  # loop fields by their short names: tiny_config(num_train_steps=6)
         node = c
         *path, last = key.split(".")
         for p in path:
@@ -80,9 +77,9 @@ def subprocess_env(num_devices: int = 8) -> dict:
 
 def train_cli(workdir: str, *overrides: str, config: str = "bridge_jax/configs/default.py:local") -> list[str]:
     """The command line of a tiny training run (same shapes as tiny_config)."""
-    base = [f"--config.height={H}", f"--config.width={W}", "--config.num_devices=2", "--config.global_batch=2", "--config.micro_batch=0", "--config.steps_per_epoch=100",
-            "--config.log_every=1", "--config.image_every=-1", "--config.eval_every=-1",
-            "--config.progress_bar=False", "--config.data.synthetic_num=32", "--config.data.prefetch=0"]
+    base = [f"--config.height={H}", f"--config.width={W}", "--config.num_devices=2", "--config.global_batch=2", "--config.micro_batch=0", "--config.loop.steps_per_epoch=100",
+            "--config.loop.log_every=1", "--config.loop.image_every=-1", "--config.loop.eval_every=-1",
+            "--config.loop.progress_bar=False", "--config.data.synthetic_num=32", "--config.data.prefetch=0"]
     return [sys.executable, "-m", "bridge_jax.train", f"--config={os.path.join(REPO, config)}",
             f"--workdir={workdir}", *base, *overrides]
 

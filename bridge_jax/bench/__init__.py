@@ -1,4 +1,4 @@
-"""Benchmarks (`python -m bridge_jax.bench`, documented in `bridge_jax.bench.cli`).
+"""Benchmarks (`bridge-bench`, documented in `bridge_jax.bench.cli`).
 
   timing   time_calls: blocked wall times, traces/compiles during the timed calls, host RSS and load
   device   peak FLOP/s (MFU) and device memory

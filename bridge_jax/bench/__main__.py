@@ -1,4 +1,4 @@
-"""`python -m bridge_jax.bench`: see `bridge_jax.bench.cli`."""
+"""`bridge-bench`: see `bridge_jax.bench.cli`."""
 import sys
 
 from bridge_jax.bench.cli import main

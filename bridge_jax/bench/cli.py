@@ -1,11 +1,11 @@
 r"""Benchmarks: train step, inference, loss alone and the input pipeline, measured the same way every time.
 
-    python -m bridge_jax.bench --what train_step --config default --micro-batch 0,2 --repeats 3 --warmup 1
-    python -m bridge_jax.bench --what inference --config default --repeats 10
-    python -m bridge_jax.bench --what loss --config full2 --cycles 2 --train-step-s 30.1
-    python -m bridge_jax.bench --what all --config default:local --json out.jsonl
-    python -m bridge_jax.bench --what train_step --config default --peer      # + upstream PyTorch beside it
-    python -m bridge_jax.bench --what conv_backward --config default --conv-batch 16   # weight-grad methods
+    bridge-bench --what train_step --config default --micro-batch 0,2 --repeats 3 --warmup 1
+    bridge-bench --what inference --config default --repeats 10
+    bridge-bench --what loss --config full2 --cycles 2 --train-step-s 30.1
+    bridge-bench --what all --config default:local --json out.jsonl
+    bridge-bench --what train_step --config default --peer      # + upstream PyTorch beside it
+    bridge-bench --what conv_backward --config default --conv-batch 16   # weight-grad methods
 
 Every measurement reports: compile time, median / min / max wall time per call over `--repeats` calls after
 `--warmup` calls (results are `block_until_ready`-ed, so the times are real), peak host RSS (`ru_maxrss` of the

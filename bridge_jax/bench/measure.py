@@ -58,7 +58,7 @@ def build_train_step(config, micro_batch: int, num_devices: int = 1):
     run = bench_run(config, num_devices=num_devices, micro_batch=micro_batch)
     graphdef, params = _init_params(run)
     net = run.model.network(graphdef)
-    tx, schedule = train_step.make_optimizer(run.optimizer, run.steps_per_epoch if run.steps_per_epoch > 0 else 1000)
+    tx, schedule = train_step.make_optimizer(run.optimizer, run.loop.steps_per_epoch if run.loop.steps_per_epoch > 0 else 1000)
     state = train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(1)))
     cycles = np.random.default_rng(0).random((run.global_batch, 4, run.height, run.width, 3), dtype=np.float32)
     kw = {}

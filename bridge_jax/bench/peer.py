@@ -3,7 +3,7 @@ step or inference at the same size and prints its timings as JSON.
 
 Where the harness and its Python live is the user's to say: `--peer-dir DIR` (holding `harness.py`) and
 `--peer-python PATH` (an interpreter with PyTorch), or the environment variables BRIDGE_JAX_PEER_DIR and
-BRIDGE_JAX_PEER_PYTHON. experiments/README.md says how the recorded side-by-side runs were set up.
+BRIDGE_JAX_PEER_PYTHON. `harness.py` prints one JSON object of timings per call (see `run_peer`).
 """
 
 from __future__ import annotations

@@ -3,21 +3,64 @@ job). Each module has `get_config(arg=None)` returning an `ml_collections.Config
 
     configs.load("full2:local")                 # by name (any directory), or a path "my/config.py[:arg]"
     configs.override(config, ["loss.two_warp=full2", "height=128"])
+
+Fields are listed with their defaults and meanings by `bridge-train --list-config [NAME]` (`setup.list_config`).
 """
 
 from __future__ import annotations
 
 import ast
+import copy
 import difflib
 import importlib
 import importlib.util
 import os
 import re
-from typing import Sequence
+import sys
+from typing import Callable, Sequence
 
 import ml_collections
 
 CONFIG_DIR = os.path.dirname(os.path.abspath(__file__))
+
+# Fields that moved from the top level into the `loop` section: the flat keys (`--config.eval_every=...`, or
+# `c.eval_every = ...` in a config file) still work in this release, with a note naming the new key.
+MOVED_KEYS = {name: f"loop.{name}" for name in (
+    "num_train_steps", "num_epochs", "steps_per_epoch", "log_every", "checkpoint_every", "eval_every", "image_every",
+    "keep_checkpoints", "async_checkpoints", "progress_bar", "max_nonfinite_in_row")}
+
+
+def _note_moved(old: str, new: str) -> None:
+    print(f"note: config.{old} is now config.{new} (the flat key is accepted until the next release)",
+          file=sys.stderr, flush=True)
+
+
+def moved_key(key: str, config: ml_collections.ConfigDict, note: Callable[[str, str], None] = _note_moved) -> str:
+    """`key`, or its new name when it is a flat key that moved (`MOVED_KEYS`) and `config` has the new one;
+    `note(old, new)` is called for a moved key."""
+    new = MOVED_KEYS.get(key)
+    if new is None or key in config:
+        return key
+    section, _, field = new.partition(".")
+    if section not in config or field not in config[section]:
+        return key
+    note(key, new)
+    return new
+
+
+def move_flat_keys(config: ml_collections.ConfigDict,
+                   note: Callable[[str, str], None] = _note_moved) -> ml_collections.ConfigDict:
+    """`config`, or a copy of it with the moved flat keys set at the top level (a config file written for the
+    previous release) moved to their section, each with a note."""
+    flat = [k for k in MOVED_KEYS if k in config and "loop" in config]
+    if not flat:
+        return config
+    config = copy.deepcopy(config)
+    for key in flat:
+        note(key, MOVED_KEYS[key])
+        config.loop[key.rpartition(".")[2]] = config[key]
+        del config[key]
+    return config
 
 
 def names() -> list[str]:
@@ -80,7 +123,8 @@ def leaf_keys(config: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
 
 def override(config: ml_collections.ConfigDict, items: Sequence[str], *,
              hint_prefix: str = "") -> ml_collections.ConfigDict:
-    """Sets `KEY=VALUE` items (dotted keys, Python literals; text where the field is a string) in place.
+    """Sets `KEY=VALUE` items (dotted keys, Python literals; text where the field is a string) in place; a moved
+    flat key (`MOVED_KEYS`) sets its new field, with a note on stderr.
 
     Raises ValueError naming the item: not KEY=VALUE, no such field (with the close matches among the fields,
     each written as `hint_prefix + key`, e.g. "--config.model.name"), or a value of the wrong type.
@@ -94,6 +138,7 @@ def override(config: ml_collections.ConfigDict, items: Sequence[str], *,
         key, eq, text = item.partition("=")
         if not eq:
             raise ValueError(f"{item!r}: expected KEY=VALUE (e.g. loss.two_warp=full2)")
+        key = moved_key(key, config)
         *path, last = key.split(".")
         node = config
         for part in path:

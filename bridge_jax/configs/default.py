@@ -5,10 +5,10 @@ pair-forwards), Adam 1e-4 halved at the starts of epochs 4, 7, 10 and 13 (upstre
 says "every 3 epochs, 5 times"), 80 epochs, lambda_sm 10, lambda_lr 0.5. Data: the built-in synthetic stereo
 video unless `--config.data.source` says otherwise.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/default
+    bridge-train --config=bridge_jax/configs/default.py --workdir=work/default
 
     # KITTI raw cycles instead of the synthetic video:
-    python -m bridge_jax.train --config=bridge_jax/configs/default.py --workdir=work/kitti \
+    bridge-train --config=bridge_jax/configs/default.py --workdir=work/kitti \
             --config.data.source=kitti_raw --config.data.data_dir=$HOME/kitti_raw
 
 The optional argument `:local` shrinks everything for a quick laptop smoke run.
@@ -20,6 +20,7 @@ import ml_collections
 
 from bridge_jax import losses, models
 from bridge_jax.data.pipeline import DataConfig
+from bridge_jax.setup import DistributedConfig, EvalConfig, LoopConfig, RunOptions
 from bridge_jax.train_step import OptimizerConfig
 
 # Upstream's KITTI-split list has 28,968 cycles; at 2 cycles a step that is one epoch. The synthetic video
@@ -37,20 +38,21 @@ def model_section(name: str) -> ml_collections.ConfigDict:
 def get_config(arg=None):
     """Returns the paper's default training config (see module docstring)."""
     c = ml_collections.ConfigDict()
+    # Every section is its dataclass's fields with their defaults (`bridge-train --list-config` prints them with
+    # their meanings); a section's own settings here differ from those defaults on purpose.
 
-    # Network. `separate_networks` = the paper's "without sharing weights" ablation.
-    # Every key of models.model_config (so any of them can be overridden from the command line).
+    # Top level: working size, batch, seed, devices, compute (setup.RunOptions). `separate_networks` = the
+    # paper's "without sharing weights" ablation. `remat`: same gradients; on XLA:CPU neither policy saved memory
+    # (measured with bridge-bench), on accelerators it can. `conv_weight_grad` "auto" = on XLA:CPU one matmul per
+    # kernel tap where that is faster than XLA's own backward (>= 64 input channels) and XLA's in batch chunks for
+    # the 7x7 stem, XLA's elsewhere and on GPU/TPU; same gradients to float32 rounding. `micro_batch` -1 = auto: 2
+    # on CPU, where a Python loop of small jitted calls is faster and much leaner than one big jit, 0 elsewhere.
+    # `compilation_cache_dir` "auto" lets a resumed run (after SIGTERM, preemption or a crash) reuse the compiled
+    # train step; JAX_COMPILATION_CACHE_DIR, if set, wins.
+    c.update(dataclasses.asdict(RunOptions()))
+
+    # Network: every key of models.model_config (so any of them can be overridden from the command line).
     c.model = model_section("resnet_md")
-    c.separate_networks = False
-    c.dtype = "float32"  # compute dtype; "bfloat16" keeps params/optimizer in float32
-    # Rematerialisation in the gradient (network.REMAT_POLICIES): "none" | "conv_outputs" | "nothing". Same
-    # gradients; on XLA:CPU neither saved memory (experiments/results/perf.md), on accelerators it can.
-    c.remat = "none"
-    # How the convolutions compute their weight gradients (layers.WEIGHT_GRAD_METHODS): "auto" = on XLA:CPU one
-    # matmul per kernel tap where that is faster than XLA's own backward (>= 64 input channels) and XLA's in batch
-    # chunks for the 7x7 stem, XLA's elsewhere and on GPU/TPU; "xla" = always XLA's. Same gradients to float32
-    # rounding.
-    c.conv_weight_grad = "auto"
 
     # Loss: every field of losses.LossConfig, with its defaults (the paper's choices; each paper/upstream
     # difference is a switch there). Type 0 = no 2-warp term = the "flow+stereo" model.
@@ -59,48 +61,17 @@ def get_config(arg=None):
     # Data: every field of data.pipeline.DataConfig. The default source is the built-in synthetic stereo video
     # (procedural, exact ground truth); data_dir/split are for kitti_raw | folder | tfds.
     c.data = ml_collections.ConfigDict(dataclasses.asdict(DataConfig()))
-    c.height = 256
-    c.width = 512
-    c.global_batch = 2  # cycles per step (all devices/processes together)
 
     # Optimisation: every field of train_step.OptimizerConfig (Adam lr, adam_b1/b2/eps; lr_milestones = epochs at
     # whose start the lr is multiplied by lr_decay), at the top level.
     c.update(dataclasses.asdict(OptimizerConfig()))
-    c.num_epochs = 80
-    c.steps_per_epoch = KITTI_SPLIT_CYCLES // 2  # -1: from the data source's size
-    c.num_train_steps = -1  # -1: num_epochs * steps_per_epoch
-    c.seed = 0
 
-    # Micro-batching (bridge_jax.micro_batch): network pair-forwards per device per call; 0 = whole batch in
-    # one jitted step (best on GPU/TPU); -1 = auto: 2 on CPU, where a Python loop of small jitted calls is
-    # faster and much leaner than one big jit, 0 elsewhere.
-    c.micro_batch = -1
-
-    c.init_from = ""  # params-only init: a params dir (convert/export) or a training workdir / step dir
-
-    # Checkpoints, logging, evaluation.
-    c.checkpoint_every = 1000
-    c.keep_checkpoints = 3
-    c.async_checkpoints = True
-    c.log_every = 50
-    c.image_every = 1000
-    c.progress_bar = True
-    c.max_nonfinite_in_row = 20
-    c.eval_every = 2000  # 0: only at the end; -1: never
-    # Held-out synthetic validation set: base seed disjoint from training's `seed`.
-    c.eval = ml_collections.ConfigDict(dict(num_samples=16, seed=1_000_003, batch=4))
-
-    # Devices: the batch is sharded over a ('data',) mesh of all devices (-1) or the first N (single process).
-    c.num_devices = -1
-
-    # Persistent XLA compilation cache, set by the command-line entry points (JAX opens it once per process):
-    # "auto" = <workdir>/xla_cache, so a resumed run (after SIGTERM, preemption or a crash) reuses the compiled
-    # train step instead of compiling it again; "" = off; else a folder. JAX_COMPILATION_CACHE_DIR, if set, wins.
-    c.compilation_cache_dir = "auto"
-
-    # Multi-host: call jax.distributed.initialize() first (arguments empty = auto-detect on TPU/SLURM...).
-    c.distributed = ml_collections.ConfigDict(dict(
-            enabled=False, coordinator_address="", num_processes=0, process_id=-1))
+    # Steps, logging, checkpoints and when to validate (setup.LoopConfig). One epoch = upstream's KITTI split.
+    c.loop = ml_collections.ConfigDict(dataclasses.asdict(LoopConfig(steps_per_epoch=KITTI_SPLIT_CYCLES // 2)))
+    # Held-out validation set (setup.EvalConfig): base seed disjoint from training's `seed`.
+    c.eval = ml_collections.ConfigDict(dataclasses.asdict(EvalConfig()))
+    # Multi-host (setup.DistributedConfig): call jax.distributed.initialize() first.
+    c.distributed = ml_collections.ConfigDict(dataclasses.asdict(DistributedConfig()))
 
     if arg == "local":
         local(c)
@@ -113,12 +84,8 @@ def local(c):
     """Shrinks a config for a minutes-long CPU smoke run (the `:local` argument of every config)."""
     c.model = model_section("resnet_md_tiny")
     c.height, c.width = 128, 256
-    c.num_train_steps = 20
-    c.steps_per_epoch = 5
-    c.checkpoint_every = 10
-    c.log_every = 1
-    c.image_every = 10
-    c.eval_every = 10
+    c.loop.update(num_train_steps=20, steps_per_epoch=5, checkpoint_every=10, log_every=1, image_every=10,
+                  eval_every=10)
     c.eval.num_samples = 4
     return c
 

@@ -1,23 +1,24 @@
-r"""README main job: a small correlation network on the built-in synthetic stereo video (about 12 minutes on 2 CPU
+r"""README main job: a small correlation network on the built-in synthetic stereo video (about 11 minutes on 2 CPU
 cores).
 
 Same cycle of four pairs, one network shared by stereo and flow, the paper's occlusion, smoothness, left-right
-losses, at 64x128. Two things go beyond the paper, chosen by the ablation in experiments/results/ablation.md:
+losses, at 64x128. Two things go beyond the paper, chosen by an ablation of the training switches (1,000-step
+runs of each):
 
 * the model is `pwc_lite` (a cost volume on normalised features, coarse to fine, one shared estimator), because
-  the paper's encoder-decoder hardly learns flow even with ground truth (experiments/results/train_bench.md);
+  the paper's encoder-decoder hardly learns flow on this data even when trained with ground truth;
 * gradient clipping (`clip_grad_norm=1.0`); every other training switch of `losses.LossConfig` stays at the
   paper's setting, because none of them lowered the flow error in the ablation.
 
-Watch `val/flow_epe_vs_zero` and `val/disp_epe_all` (metrics.jsonl / TensorBoard); experiments/synthetic.md
-shows what a run reaches.
+Watch `val/flow_epe_vs_zero` and `val/disp_epe_all` (metrics.jsonl / TensorBoard); the README's "The two
+commands" says what a run reaches.
 
-  python -m bridge_jax.demo --workdir=work/demo          # train + evaluate + report (what `make demo` runs)
-  python -m bridge_jax.train --config=bridge_jax/configs/demo.py --workdir=work/demo   # training only
+  bridge-demo --workdir=work/demo                        # train + evaluate + report (what `make demo` runs)
+  bridge-train --config=demo --workdir=work/demo         # training only
 
 Arguments (comma-separated, e.g. `demo:resnet_md_tiny,paper_loss`): `short` = a 1-minute smoke run;
 `resnet_md_tiny` = the paper's network (tiny widths) instead of pwc_lite; `paper_loss` = every training switch
-at the paper's setting; `long` = the longer recipe of experiments/synthetic.md (128x256, 6,000 steps: under 2 h
+at the paper's setting; `long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
@@ -35,7 +36,7 @@ def get_config(arg=None):
     c = default.get_config(None)
     if "resnet_md_tiny" in opts:
         c.model = default.model_section("resnet_md_tiny")
-        c.model.head_init = "zeros"  # every map starts at zero motion (train_bench.md, session 2)
+        c.model.head_init = "zeros"  # every map starts at zero motion (see models.init)
     else:
         c.model = default.model_section("pwc_lite")  # zero output heads by default
     # 64x128: the loss, not the small network, dominates a step, so 4x fewer pixels than 128x256 buy 4x the steps.
@@ -43,34 +44,27 @@ def get_config(arg=None):
     c.global_batch = 2
     c.micro_batch = 0  # a small model: one jitted step beats many small calls
     c.lr = 1e-3
-    c.num_train_steps = 2500
+    c.loop.num_train_steps = 2500
     # The paper's step schedule, compressed: 250-step "epochs", so the lr halves at the starts of epochs 4 and 7
     # (steps 1000 and 1750).
-    c.steps_per_epoch = 250
+    c.loop.steps_per_epoch = 250
     if "paper_loss" not in opts:
-        # The ablation's pick (experiments/results/ablation.md, 1,000-step runs): every loss switch left at the
+        # The ablation's pick (1,000-step runs): every loss switch left at the
         # paper's setting (census, finest-only, 1st-order smoothness, a late occlusion start and coordinate
         # channels did not lower pwc_lite's flow error), plus global-norm gradient clipping, which matched the
         # paper loss on flow and lowered the disparity error.
         c.clip_grad_norm = 1.0
     c.data.synthetic_num = 20_000
     c.data.num_workers = 0
-    c.checkpoint_every = 500
-    c.keep_checkpoints = 2
-    c.log_every = 25
-    c.image_every = 250
-    c.eval_every = 250
+    c.loop.update(checkpoint_every=500, keep_checkpoints=2, log_every=25, image_every=250, eval_every=250)
     c.eval.num_samples = 16
     c.eval.batch = 8
     if "long" in opts:  # the same recipe at 4x the pixels and 2.4x the steps
         c.height, c.width = 128, 256
-        c.num_train_steps = 6000
-        c.steps_per_epoch = 600  # lr halves at steps 2400 and 4200
-        c.checkpoint_every = c.eval_every = 500
-        c.image_every = 500
+        c.loop.update(num_train_steps=6000, steps_per_epoch=600,  # lr halves at steps 2400 and 4200
+                      checkpoint_every=500, eval_every=500, image_every=500)
         c.eval.batch = 4
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
-        c.num_train_steps = 30
-        c.checkpoint_every = c.eval_every = c.image_every = 15
+        c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4
     return c

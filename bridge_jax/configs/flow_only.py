@@ -1,6 +1,6 @@
 r"""Paper ablation "flow only": the network trained on the two optical-flow pairs of each cycle.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/flow_only.py --workdir=work/flow_only
+    bridge-train --config=bridge_jax/configs/flow_only.py --workdir=work/flow_only
 """
 
 from bridge_jax.configs import default

@@ -2,7 +2,7 @@ r"""Paper "flow+stereo": one shared network on all four pairs, no 2-warp (= defa
 
 This is the model the full-1/2/3 variants start from (`--config.init_from`).
 
-    python -m bridge_jax.train --config=bridge_jax/configs/flow_stereo.py --workdir=work/flow_stereo
+    bridge-train --config=bridge_jax/configs/flow_stereo.py --workdir=work/flow_stereo
 """
 
 from bridge_jax.configs import default

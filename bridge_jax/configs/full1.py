@@ -2,7 +2,7 @@ r"""Paper "full-1": flow+stereo plus the full-1 2-warp consistency terms (losses
 
 Paper recipe: initialise from a trained flow+stereo model.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/full1.py --workdir=work/full1 \
+    bridge-train --config=bridge_jax/configs/full1.py --workdir=work/full1 \
             --config.init_from=work/flow_stereo
 """
 

@@ -2,7 +2,7 @@ r"""Paper "full-2": flow+stereo plus the full-2 2-warp consistency terms (losses
 
 Paper recipe: initialise from a trained flow+stereo model.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/full2.py --workdir=work/full2 \
+    bridge-train --config=bridge_jax/configs/full2.py --workdir=work/full2 \
             --config.init_from=work/flow_stereo
 """
 

@@ -2,7 +2,7 @@ r"""Paper "full-3": flow+stereo plus the full-3 2-warp consistency terms (losses
 
 Paper recipe: initialise from a trained flow+stereo model.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/full3.py --workdir=work/full3 \
+    bridge-train --config=bridge_jax/configs/full3.py --workdir=work/full3 \
             --config.init_from=work/flow_stereo
 """
 

@@ -2,7 +2,7 @@ r"""Paper ablation "without sharing weights": separate stereo and flow networks.
 
 Stereo pairs go through one ResNet-MD, flow pairs through another; the loss is the flow+stereo loss.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/no_sharing.py --workdir=work/no_sharing
+    bridge-train --config=bridge_jax/configs/no_sharing.py --workdir=work/no_sharing
 """
 
 from bridge_jax.configs import default

@@ -2,7 +2,7 @@ r"""Supplementary variant: PWC-Net instead of the ResNet-MD network (flow+stereo
 
 Upstream forces a width of 832 for PWC-Net; we keep 512x256 by default (any multiple of 64 works).
 
-    python -m bridge_jax.train --config=bridge_jax/configs/pwcnet.py --workdir=work/pwcnet
+    bridge-train --config=bridge_jax/configs/pwcnet.py --workdir=work/pwcnet
 """
 
 from bridge_jax.configs import default

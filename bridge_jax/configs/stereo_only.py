@@ -1,6 +1,6 @@
 r"""Paper ablation "stereo only": the network trained on the two stereo pairs of each cycle.
 
-    python -m bridge_jax.train --config=bridge_jax/configs/stereo_only.py --workdir=work/stereo_only
+    bridge-train --config=bridge_jax/configs/stereo_only.py --workdir=work/stereo_only
 """
 
 from bridge_jax.configs import default

@@ -5,7 +5,7 @@
       ─ map(load: decode the cycle, or skip a corrupt one and take the next valid one)
       ─ random_map(augment, same draw for the 4 frames) ─ map(resize to H × W)
       ─ to_iter_dataset ─ batch(global_batch / P, drop_remainder) ─ mp_prefetch(num_workers)
-      ─ map(record the batch's skipped cycles in this process's skip report)
+      ─ map(record the batch's skipped cycles in the dataset's skip log, `dataset.skips`)
     yields {"cycle": float32 (B_local, 4, H, W, 3) in [0, 1]}; the iterator's get_state()/set_state() resume on
     the exact next batch (the state is a small dict, saved by the trainer in its orbax checkpoint).
 
@@ -29,12 +29,12 @@ Bad data, found in two places:
     image's header; left/right frames of different sizes in most stereo frames of a sequence raise one
     ValueError naming both files (the trainer builds the dataset before it creates its workdir); cycles with an
     unreadable file, a few odd left/right pairs, or spanning a change of frame size are left out of the source,
-    each with its cause (`prescan_report()`);
+    each with its cause (`dataset.skips.prescan_report()`);
   * while decoding: a cycle whose image is missing, truncated or undecodable, or whose frames differ in size,
     is replaced by the next valid cycle of the source (index + 1, + 2, …). More than `max_skip` consecutive
     failures raise one error naming the data folder and the causes.
-`skip_report()` counts each distinct skipped cycle once (not once per epoch), pre-scan exclusions and decode
-failures together, in the process that iterates the dataset: decode failures in grain worker processes travel
+`dataset.skips.report()` counts each distinct skipped cycle of that dataset once (not once per epoch), pre-scan
+exclusions and decode failures together, in the process that iterates the dataset: decode failures in grain worker processes travel
 with their batch (each element carries the source indices it skipped) and are recorded when the batch reaches
 the iterating process. Each distinct skip is logged once, with the file and the cause.
 """
@@ -94,10 +94,6 @@ class SkipLog:
             self._cycles.clear()
 
 
-_PRESCAN = SkipLog()  # cycles left out by the pre-scan of sources built for a dataset in this process
-_RUNTIME = SkipLog()  # cycles whose decoding failed (here, or in a worker whose batch reached this process)
-
-
 def _report(*logs: SkipLog) -> dict:
     cycles, causes = set(), {}
     for sl in logs:
@@ -107,50 +103,44 @@ def _report(*logs: SkipLog) -> dict:
     return {"cycles": len(cycles), "files": sorted(causes), "causes": {p: causes[p] for p in sorted(causes)}}
 
 
-def skip_report() -> dict:
-    """Distinct cycles skipped since the last `reset_skip_counts()`, each counted once however often it is met:
+class DataSkips:
+    """The skipped cycles of one training dataset (`make_train_dataset(...).skips`): those the pre-scan left out
+    of its source and those whose decoding failed in the batches this process consumed (in worker processes
+    too, see the module docstring). Each dataset has its own, so a second run in a process reports only its own."""
 
-        {"cycles": number of distinct cycle ids skipped, "files": sorted distinct files at fault,
-         "causes": {file: cause}}
+    def __init__(self):
+        self.prescan = SkipLog()
+        self.runtime = SkipLog()
 
-    It covers the pre-scan exclusions of every dataset built in this process (`prescan_report()`) and the
-    decode failures of the batches this process has consumed (from worker processes too, see the module
-    docstring); a cycle's files are named once, with the first cause found.
-    """
-    return _report(_PRESCAN, _RUNTIME)
+    def record(self, source, index: int, path: str, reason: str) -> None:
+        """Records a decode failure of `source[index]`; logged once per distinct cycle."""
+        cycle_id = _cycle_id(source, index)
+        if self.runtime.add(cycle_id, path, reason):
+            log.warning("skipping unreadable cycle %s: %s: %s (%d distinct cycles skipped so far in process %d)",
+                        cycle_id, path, reason, len(self.runtime), os.getpid())
+        else:  # met again (a later epoch): already reported
+            log.debug("skipping unreadable cycle %s again: %s", cycle_id, path)
 
+    def report(self) -> dict:
+        """Distinct cycles skipped, each counted once however often it is met:
 
-def prescan_report() -> dict:
-    """The part of `skip_report()` found before training: cycles left out by `folders.check_cycles` when
-    `make_train_dataset` built its source (same keys as `skip_report()`)."""
-    return _report(_PRESCAN)
+            {"cycles": number of distinct cycle ids skipped, "files": sorted distinct files at fault,
+             "causes": {file: cause}}
 
+        Pre-scan exclusions and decode failures together; a cycle's files are named once, with the first cause.
+        """
+        return _report(self.prescan, self.runtime)
 
-def skip_counts() -> dict:
-    """{"count": distinct skipped cycles, "paths": their files} (the older short form of `skip_report()`)."""
-    rep = skip_report()
-    return {"count": rep["cycles"], "paths": rep["files"]}
-
-
-def reset_skip_counts() -> None:
-    """Forgets every recorded skip (pre-scan and decode failures)."""
-    _PRESCAN.clear()
-    _RUNTIME.clear()
+    def prescan_report(self) -> dict:
+        """The part of `report()` found before training: cycles left out by `folders.check_cycles` when the
+        dataset's source was built (same keys as `report()`)."""
+        return _report(self.prescan)
 
 
 def _cycle_id(source, index: int) -> str:
     """A source record's cycle id (file sources), else "#<index>" (the same in every process)."""
     records = getattr(source, "records", None)
     return str(records[index]["id"]) if records is not None else f"#{index}"
-
-
-def _record_skip(source, index: int, path: str, reason: str) -> None:
-    cycle_id = _cycle_id(source, index)
-    if _RUNTIME.add(cycle_id, path, reason):
-        log.warning("skipping unreadable cycle %s: %s: %s (%d distinct cycles skipped so far in process %d)",
-                    cycle_id, path, reason, len(_RUNTIME), os.getpid())
-    else:  # met again (a later epoch): already reported
-        log.debug("skipping unreadable cycle %s again: %s", cycle_id, path)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -250,21 +240,21 @@ class DataConfig:
     num_epochs: passes over the source (None = forever, the trainer's choice).
     """
 
-    source: str = "synthetic"
-    data_dir: str = ""
-    split: str = ""
-    augment: bool = True
-    augment_zoom: float = 1.0
-    num_workers: int = 0
-    prefetch: int = 2
-    read_threads: int = 1
-    worker_buffer_size: int = 2
-    max_skip: int = 100
-    synthetic_num: int = DEFAULT_SYNTHETIC_NUM
-    synthetic_scene: str = "demo"
-    num_epochs: Optional[int] = None
-    prescan: bool = True
-    val_dir: str = ""
+    source: str = "synthetic"  # synthetic | kitti_raw | folder | tfds
+    data_dir: str = ""  # the folder of kitti_raw | folder | tfds
+    split: str = ""  # kitti_raw: all | kitti | eigen | a list file; tfds: the builder config
+    augment: bool = True  # the paper's augmentation (flip, gamma, brightness, colour)
+    augment_zoom: float = 1.0  # with augment, a random zoom crop of s in [augment_zoom, 1] (1 = off)
+    num_workers: int = 0  # grain worker processes (0 = decode in the training process)
+    prefetch: int = 2  # grain read-ahead buffer (elements)
+    read_threads: int = 1  # grain read threads
+    worker_buffer_size: int = 2  # batches buffered per worker process
+    max_skip: int = 100  # consecutive unreadable cycles tolerated before the folder is reported broken
+    synthetic_num: int = DEFAULT_SYNTHETIC_NUM  # synthetic cycles per epoch (fixes the shuffle period)
+    synthetic_scene: str = "demo"  # synthetic scene settings: demo | real | heldout (synthetic.SCENE_PRESETS)
+    num_epochs: Optional[int] = None  # passes over the source (None = forever, the trainer's choice)
+    prescan: bool = True  # read every image header before training (folder | kitti_raw)
+    val_dir: str = ""  # held-out frames of your own for validation ("" = synthetic validation)
 
     def __post_init__(self):
         if self.source not in SOURCES:
@@ -301,8 +291,9 @@ class LoadCycle:
     """index → {"cycle": uint8 (4, H, W, 3), "id", "skipped": int64 (2,)}: loads cycle `index`, or the next
     valid one after it; "skipped" = (first, count): source indices first … first + count − 1 (mod len) failed."""
 
-    def __init__(self, source, max_skip: int = 100):
+    def __init__(self, source, max_skip: int = 100, skips: Optional[DataSkips] = None):
         self.source, self.max_skip = source, max_skip
+        self.skips = DataSkips() if skips is None else skips
 
     def __call__(self, index) -> dict:
         n = len(self.source)
@@ -314,7 +305,7 @@ class LoadCycle:
             try:
                 rec = self.source.load(j)
             except kitti.CorruptImageError as e:
-                _record_skip(self.source, j, e.path, e.reason)
+                self.skips.record(self.source, j, e.path, e.reason)
                 causes.setdefault(e.path, e.reason)
                 continue
             return {"cycle": rec["cycle"], "id": rec["id"], "skipped": np.array([first, attempt], np.int64)}
@@ -326,26 +317,26 @@ class LoadCycle:
 
 class _CollectSkips(grain.transforms.Map):
     """Runs in the iterating process (after the worker processes): records the skips a batch carries, so that
-    `skip_report()` there also knows the decode failures of the workers; yields {"cycle"} only."""
+    the dataset's `skips` there also knows the decode failures of the workers; yields {"cycle"} only."""
 
-    def __init__(self, source):
-        self.source = source
+    def __init__(self, source, skips: DataSkips):
+        self.source, self.skips = source, skips
 
     def map(self, batch: dict) -> dict:
         n = len(self.source)
         for first, count in np.asarray(batch["skipped"]).reshape(-1, 2):
             for a in range(int(count)):
                 j = (int(first) + a) % n
-                if _cycle_id(self.source, j) in _RUNTIME:
+                if _cycle_id(self.source, j) in self.skips.runtime:
                     continue
                 # The worker knew the file and the cause; a second read here names them (rare: once per
                 # distinct bad cycle).
                 try:
                     self.source.load(j)
                 except kitti.CorruptImageError as e:
-                    _record_skip(self.source, j, e.path, e.reason)
+                    self.skips.record(self.source, j, e.path, e.reason)
                 else:
-                    _record_skip(self.source, j, f"{getattr(self.source, 'root', '?')}#{j}",
+                    self.skips.record(self.source, j, f"{getattr(self.source, 'root', '?')}#{j}",
                                  "unreadable in a worker process (readable when read again)")
         return {"cycle": batch["cycle"]}
 
@@ -474,8 +465,8 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
       source: optional ready source object (len + load) instead of building one from `data`.
     Returns:
       grain IterDataset; iter(ds) yields {"cycle": float32 (global_batch // P, 4, height, width, 3)} and has
-      get_state() / set_state(). The source's pre-scan exclusions are in `prescan_report()` from here on, and
-      `skip_report()` grows with the decode failures of the batches consumed.
+      get_state() / set_state(). Its `skips` (`DataSkips`) holds the source's pre-scan exclusions from here on
+      and grows with the decode failures of the batches consumed.
     Raises:
       ValueError for bad arguments and bad data found before training (missing folder, no cycles, left and
       right frames of different sizes; see `folders.check_cycles`).
@@ -490,8 +481,9 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     local_batch = global_batch // process_count
     src = source if source is not None else make_source(data, height=height, width=width, seed=seed)
+    skips = DataSkips()
     for e in getattr(src, "excluded", ()):
-        _PRESCAN.add(e["id"], e["path"], e["cause"])
+        skips.prescan.add(e["id"], e["path"], e["cause"])
     n = len(src)
     usable = n - n % process_count
     if usable // process_count < 1:
@@ -502,8 +494,9 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
         ds = ds[:usable]
     ds = ds[process_index::process_count]
     ds = ds.repeat(None if data.num_epochs is None else int(data.num_epochs))
-    ds = ds.map(LoadCycle(src, int(data.max_skip)))
-    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom)), seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
+    ds = ds.map(LoadCycle(src, int(data.max_skip), skips))
+    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom)),
+                       seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
     ds = ds.map(_Resize(height, width))
     ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(data.read_threads) or 1,
                                               prefetch_buffer_size=int(data.prefetch)))
@@ -516,7 +509,9 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
             flags.FLAGS.mark_as_parsed()
         ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=workers,
                                                          per_worker_buffer_size=int(data.worker_buffer_size)))
-    return ds.map(_CollectSkips(src))
+    ds = ds.map(_CollectSkips(src, skips))
+    ds.skips = skips  # the dataset's own skip log (grain datasets are plain Python objects)
+    return ds
 
 
 def shard_batch(batch: dict, mesh, axis_names=None):

@@ -31,7 +31,7 @@ Conventions: pixel (x, y) has its centre at integer coordinates (x = column, y =
 the left camera at t (X right, Y down, Z forward). Default focal = 721.5377·W/1242 (KITTI scaled), baseline
 0.54 m, principal point ((W−1)/2, 0.46·H).
 
-CLI: `python -m bridge_jax.data.synthetic --out DIR --num N --seed S [--height 256 --width 512]` writes the
+CLI: `bridge-synthetic --out DIR --num N --seed S [--height 256 --width 512]` writes the
 KITTI 2015 training layout (see `write_kitti_layout`).
 """
 from __future__ import annotations
@@ -826,13 +826,14 @@ def build_parser():
                              "differences between the cameras, slanted and rotating objects, varied rigs) or "
                              "heldout (held-out photos and settings, for checking generalisation)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
+    cli.add_debug_flag(parser)
     return parser
 
 
 CLI_DOC = """Write procedural stereo-video samples with exact ground truth in the KITTI 2015 training layout.
 
-    python -m bridge_jax.data.synthetic --out work/synthetic_val --num 16 --seed 1000003 --height 64 --width 128
-    python -m bridge_jax.evaluate --checkpoint demo --dataset synthetic --data-dir work/synthetic_val --out work/ev
+    bridge-synthetic --out work/synthetic_val --num 16 --seed 1000003 --height 64 --width 128
+    bridge-evaluate --checkpoint demo --dataset synthetic --data-dir work/synthetic_val --out work/ev
 
 Output: image_2/ and image_3/ (NNNNNN_10.png, NNNNNN_11.png: left/right at t and t+1), disp_occ_0/, disp_noc_0/,
 disp_occ_1/, disp_noc_1/ (KITTI 16-bit disparity PNGs), flow_occ/, flow_noc/ (KITTI 16-bit flow PNGs),
@@ -849,8 +850,8 @@ def main(argv=None) -> int:
         out = write_kitti_layout(args.out, args.num, args.seed, args.height, args.width, overwrite=args.overwrite,
                                  focal=args.focal, baseline=args.baseline, scene=args.scene)
     except (ValueError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        from bridge_jax import cli
+        return cli.report_error(e, debug=args.debug)
     print(f"wrote {args.num} samples to {out}")
     return 0
 

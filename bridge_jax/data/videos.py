@@ -1,9 +1,9 @@
-"""Stereo video files → frames: the training folder layout from a side-by-side video or a left + right pair.
+r"""Stereo video files → frames: the training folder layout from a side-by-side video or a left + right pair.
 
-    python -m bridge_jax.data.videos left.mp4 right.mp4 --out my_video          # two files, one per camera
-    python -m bridge_jax.data.videos drive_sbs.mp4 --side-by-side --out my_video  # left | right in each frame
-    python -m bridge_jax.data.videos drive_sbs.mp4 --side-by-side --out my_video --every 2 --max-frames 5000
-    python -m bridge_jax.train --config=demo --workdir=work/mine \
+    bridge-frames left.mp4 right.mp4 --out my_video                     # two files, one per camera
+    bridge-frames drive_sbs.mp4 --side-by-side --out my_video           # left | right in each frame
+    bridge-frames drive_sbs.mp4 --side-by-side --out my_video --every 2 --max-frames 5000
+    bridge-train --config=demo --workdir=work/mine \
         --config.data.source=folder --config.data.data_dir=my_video --config.init_from=demo
 
 Output (written to a temporary folder beside OUT and renamed when complete):

@@ -1,4 +1,4 @@
-"""Evaluation building blocks, used by `python -m bridge_jax.evaluate`, `predict` and training's validation.
+"""Evaluation building blocks, used by `bridge-evaluate`, `predict` and training's validation.
 
   datasets   frames and ground truth: KITTI 2015 / 2012, Eigen (Velodyne), synthetic (folder or in memory)
   methods    frames -> predictions: the model (through `bridge_jax.inference.Predictor`), disp_1, occlusion

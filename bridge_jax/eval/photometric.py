@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 ALPHA = 0.85
 BORDER_RATIO = 0.1
-TASKS = ("stereo", "flow")
+SCORED_PAIRS = ("stereo", "flow")
 OPTION = "config.data.val_dir"
 
 
@@ -191,7 +191,7 @@ def photometric_validation(predictor, cycles: np.ndarray, batch: int, *, params:
         if first_maps is None:
             first_maps = {k: np.asarray(v[0]) for k, v in err.items()}
     metrics = {k: v / n for k, v in sums.items()}
-    for task in TASKS:
+    for task in SCORED_PAIRS:
         for kind in ("l1", "ssim_l1"):
             zero = metrics[f"zero_{task}_photo_{kind}"]
             metrics[f"{task}_photo_{kind}_vs_zero"] = metrics[f"{task}_photo_{kind}"] / max(zero, 1e-12)

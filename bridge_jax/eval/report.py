@@ -12,17 +12,19 @@ import numpy as np
 
 from bridge_jax import files, metrics, visualize
 from bridge_jax.eval.datasets import Frame
-from bridge_jax.eval.scoring import TASKS
 
 METHOD_LABELS = {"model": "bridge_jax", "zero": "zero motion", "opencv": "OpenCV SGBM (disp) / DIS (flow)"}
 
+# One table per scored task (`scoring.SCORED_TASKS`): (task, title, metric names).
 METRIC_GROUPS = (
-    ("Optical flow (t → t+1), EPE px / Fl %", ("epe_all", "epe_noc", "epe_occ", "fl_all", "fl_noc", "fl_occ")),
-    ("Disparity at t, EPE px / D1 %", ("epe_all", "epe_noc", "d1_all", "d1_noc", "d1_occ", "d1_all_paper",
-                                        "d1_noc_paper")),
-    ("Disparity at t+1 in frame t (D2 %) and scene flow (SF %)",
+    ("flow", "Optical flow (t → t+1), EPE px / Fl %", ("epe_all", "epe_noc", "epe_occ", "fl_all", "fl_noc",
+                                                        "fl_occ")),
+    ("disparity", "Disparity at t, EPE px / D1 %", ("epe_all", "epe_noc", "d1_all", "d1_noc", "d1_occ",
+                                                     "d1_all_paper", "d1_noc_paper")),
+    ("scene_flow", "Disparity at t+1 in frame t (D2 %) and scene flow (SF %)",
      ("d2_epe_all", "d2_epe_noc", "d2_all", "d2_noc", "sf_all", "sf_noc")),
-    ("Depth from disparity at t (m; δ fractions)", ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")),
+    ("depth", "Depth from disparity at t (m; δ fractions)", ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2",
+                                                              "a3")),
 )
 
 
@@ -39,7 +41,7 @@ def markdown_table(results: dict) -> str:
              "EPE in GT pixels, Fl/D1/D2/SF in %, depth errors in m, a1..a3 = δ < 1.25^k fractions. "
              "`*_paper` = `>=` outliers (monodepth-lineage script): `d1_all_paper` on disp_occ (as upstream), "
              "`d1_noc_paper` on disp_noc.", ""]
-    for (title, names), task in zip(METRIC_GROUPS, TASKS):
+    for task, title, names in METRIC_GROUPS:
         present = [n for n in names if any(n in results["methods"][m].get(task, {}).get("pooled", {})
                                            for m in results["methods"])]
         if not present:

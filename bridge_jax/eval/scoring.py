@@ -6,14 +6,19 @@ disparity at t with the frame's focal length and baseline). Reductions and units
 
 from __future__ import annotations
 
-from typing import Iterable
+import dataclasses
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Optional
 
 import numpy as np
 
 from bridge_jax import metrics
 from bridge_jax.eval.datasets import Frame
+from bridge_jax.eval.report import frame_panel
 
-TASKS = ("flow", "disparity", "scene_flow", "depth")
+SCORED_TASKS = ("flow", "disparity", "scene_flow", "depth")
+"""What a frame is scored on (one metric accumulator each; `report.METRIC_GROUPS` has a table per task)."""
 
 
 def frame_sums(pred: dict[str, np.ndarray], frame: Frame) -> dict[str, metrics.Sums]:
@@ -58,7 +63,7 @@ class Scores:
     """Metric accumulators per method and task (`metrics.MetricAccumulator`)."""
 
     def __init__(self, methods: Iterable[str]):
-        self.accumulators = {m: {t: metrics.MetricAccumulator() for t in TASKS} for m in methods}
+        self.accumulators = {m: {t: metrics.MetricAccumulator() for t in SCORED_TASKS} for m in methods}
 
     def add(self, method: str, frame: Frame, pred: dict[str, np.ndarray]) -> None:
         for task, sums in frame_sums(pred, frame).items():
@@ -75,3 +80,48 @@ class Scores:
         for task, prefix in prefixes.items():
             out.update({prefix + k: v for k, v in self.accumulators[method][task].per_image_mean().items()})
         return out
+
+
+@dataclasses.dataclass
+class Scored:
+    """What `score_methods` measured: the scores, seconds per method and for loading, the picture panels."""
+
+    scores: Scores
+    method_s: dict[str, float]
+    load_s: float
+    pictures: list[tuple[str, np.ndarray]]
+    num_frames: int
+
+
+def score_methods(batches: Iterable[Sequence[Frame]], methods: dict[str, Callable], *, num_pictures: int = 0,
+                  picture_method: Optional[str] = None, bar=None) -> Scored:
+    """Runs every method on every batch of frames and scores its predictions.
+
+    Args:
+      batches: lists of frames (a generator may load them lazily: its time is counted as loading).
+      methods: name -> method (frames -> predictions, see `bridge_jax.eval.methods`).
+      num_pictures: keep `frame_panel`s of the first frames, drawn from `picture_method`'s predictions.
+      bar: optional progress bar (tqdm), advanced by the frames of each batch.
+    """
+    scores = Scores(methods)
+    method_s = {m: 0.0 for m in methods}
+    pictures: list[tuple[str, np.ndarray]] = []
+    load_s, n = 0.0, 0
+    batches = iter(batches)
+    while True:
+        t0 = time.perf_counter()
+        frames = next(batches, None)
+        load_s += time.perf_counter() - t0
+        if frames is None:
+            break
+        for name, method in methods.items():
+            t0 = time.perf_counter()
+            for frame, pred in zip(frames, method(frames)):
+                scores.add(name, frame, pred)
+                if name == picture_method and len(pictures) < num_pictures:
+                    pictures.append((frame.frame_id, frame_panel(frame, pred)))
+            method_s[name] += time.perf_counter() - t0
+        n += len(frames)
+        if bar is not None:
+            bar.update(len(frames))
+    return Scored(scores, method_s, load_s, pictures, n)

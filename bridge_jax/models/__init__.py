@@ -154,7 +154,7 @@ def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
     if cfg.get("head_init") == "zeros":
         # Zero output convs: the maps start at the zero-motion solution instead of a random field of
         # several pixels (0.3 tanh of a random conv), from which the photometric gradient, a local
-        # signal, cannot find its way back (experiments/results/train_bench.md). The layers below
+        # signal, cannot find its way back (measured on the synthetic video). The layers below
         # still get gradients once the head weights move away from zero.
         heads = _HEAD_PREFIXES[cfg["name"]]
         params = {k: (jax.tree.map(np.zeros_like, v) if k.startswith(heads) else v) for k, v in params.items()}

@@ -5,9 +5,9 @@ weights behave the same). PyTorch pads *symmetrically* (`padding=k//2` on both s
 whereas `'SAME'` pads stride-2 convs asymmetrically; and PyTorch's default init differs from Flax's.
 
 Performance: on XLA:CPU a 1x1 convolution is written as a `jnp.dot` over the channel axis, whose weight gradient
-is several times faster than the equivalent `lax.conv`'s (experiments/results/model_bench.md); the wider 3x3 (and
-sub-pixel 2x2) convolutions get their weight gradient as one matmul per kernel tap for the same reason
-(`conv_nhwc`, `WEIGHT_GRAD_METHODS`, experiments/results/perf.md).
+is several times faster than the equivalent `lax.conv`'s; the wider 3x3 (and sub-pixel 2x2) convolutions get
+their weight gradient as one matmul per kernel tap for the same reason (`conv_nhwc`, `WEIGHT_GRAD_METHODS`;
+`bridge-bench --what conv_backward` times every method on the machine at hand).
 
 Parameter layout: kernels are HWIO `(kh, kw, in, out)` (PyTorch OIHW permuted (2, 3, 1, 0)); biases `(out,)`.
 """
@@ -140,7 +140,7 @@ WEIGHT_GRAD_METHODS = ("auto", "xla", "shift_dy", "shift_x", "xla_chunks")
 - "shift_dy": one matmul per kernel tap (i, j) between the input x `(N, H, W, Cin)`, unchanged, and the output
   gradient dy placed where that tap reads x (`lax.pad`: zero-filled shift, and for stride s zeros between the
   rows and columns), contracting N, H and W. On XLA:CPU this runs 1.5-3x faster than XLA's backward-filter
-  convolution for this network's layers with >= 64 input channels (experiments/results/perf.md); it loses on
+  convolution for this network's layers with >= 64 input channels (`bridge-bench --what conv_backward`); it loses on
   the full-resolution layers with 16-32 channels, where the shifted dy copies cost more than the matmuls gain.
 - "shift_x": one matmul per tap between the shifted input view and dy (the input is the side that is copied).
 - "xla_chunks": XLA's backward-filter convolution on chunks of `WEIGHT_GRAD_CHUNK` rows of the batch, summed

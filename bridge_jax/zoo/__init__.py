@@ -1,10 +1,10 @@
 """Models by name: the weights shipped inside the package and a registry of other known checkpoints.
 
-    python -m bridge_jax.predict --checkpoint demo frame0.png frame1.png --out out/    # from any directory
+    bridge-predict --checkpoint demo frame0.png frame1.png --out out/    # from any directory
     from bridge_jax.inference import load_predictor
     pred = load_predictor("demo")                    # the shipped demo model, at the size it was trained at
-    python -m bridge_jax.zoo                         # lists the names
-    python -m bridge_jax.zoo build demo --from work/demo/train   # regenerate the shipped weights (maintainers)
+    bridge-zoo                         # lists the names
+    bridge-zoo build demo --from work/demo/train   # regenerate the shipped weights (maintainers)
 
 Wherever a command takes `--checkpoint` (predict, evaluate, export) or a config takes `init_from`, a registry
 name works as well as a path. Kinds of entry:
@@ -13,7 +13,7 @@ name works as well as a path. Kinds of entry:
   parameter paths joined by "/") and `<name>.json` (model description, working size, how it was trained, its
   validation numbers and the npz's SHA-256). Nothing is downloaded.
 * **local** (`upstream_ver_a/b/c`): the upstream authors' released PyTorch weights, converted once with
-  `python -m bridge_jax.convert` to a params folder under `$BRIDGE_JAX_HOME` (default `~/.cache/bridge_jax`);
+  `bridge-convert` to a params folder under `$BRIDGE_JAX_HOME` (default `~/.cache/bridge_jax`);
   the entry says where to download the `.pth` file and the exact command. Until converted, using the name is one
   error naming that command.
 
@@ -65,7 +65,7 @@ _ENTRIES: dict[str, Entry] = {
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
         f"variant full-{i}), converted to bridge_jax",
         path=f"upstream_ver_{v}", download=UPSTREAM_DOWNLOAD,
-        how=f"python -m bridge_jax.convert --from monodepth_ver_{v}.pth --out {{path}}")
+        how=f"bridge-convert --from monodepth_ver_{v}.pth --out {{path}}")
        for i, v in enumerate("abc", start=1)},
 }
 
@@ -172,7 +172,7 @@ def load_shipped(name: str) -> tuple[dict, dict]:
 
 
 def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
-    """`checkpointing.load_params` that also takes a registry name: (model config, params)."""
+    """`checkpointing.read_params` that also takes a registry name: (model config, params)."""
     from bridge_jax import checkpointing
 
     if is_name(spec):
@@ -182,7 +182,7 @@ def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
             cfg, params = load_shipped(e.name)
             return cfg, _map(params, lambda a: jnp.asarray(a, jnp.float32))
         spec = local_checkpoint(e.name)
-    return checkpointing.load_params(spec)
+    return checkpointing.read_params(spec)
 
 
 def _map(tree, fn):
@@ -211,14 +211,14 @@ def resolve_path(spec: str | os.PathLike) -> str:
 
 def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None) -> Path:
     """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
-    config changes, retrain with `make demo` and run `python -m bridge_jax.zoo build demo --from
+    config changes, retrain with `make demo` and run `bridge-zoo build demo --from
     work/demo/train`). The json records the run's config so a test notices when the config moved on."""
     import io
 
-    from bridge_jax import checkpointing, files, train  # train imports this module: import it here, not on top
+    from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
 
     workdir = Path(workdir).absolute()
-    cfg, params = checkpointing.load_params(workdir)
+    cfg, params = checkpointing.read_params(workdir)
     checkpointing.check_finite_params(params, str(workdir))
     run_cfg = json.loads((workdir / checkpointing.CONFIG_JSON).read_text())
     step = Path(checkpointing.find_train_step_dir(workdir)).name
@@ -227,7 +227,7 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     data = buf.getvalue()
     meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
             "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
-            "validation": validation if validation is not None else train.last_validation(str(workdir))}
+            "validation": validation if validation is not None else run_workdir.last_validation(str(workdir))}
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
     files.write_json(js, meta)

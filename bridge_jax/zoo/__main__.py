@@ -1,7 +1,7 @@
 """List the models known by name, or (maintainers) regenerate a shipped model's weights from a training workdir.
 
-    python -m bridge_jax.zoo                                      # names, kinds, where each one is
-    python -m bridge_jax.zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
+    bridge-zoo                                      # names, kinds, where each one is (or how to get it)
+    bridge-zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
 
 `build` writes bridge_jax/zoo/<name>.npz (float32 params, compressed) and <name>.json (model, working size, the
 run's config, steps, last validation, SHA-256); the test suite checks the shipped model against the current
@@ -35,8 +35,15 @@ def main(argv=None) -> int:
             return 0
         for name in zoo.names():
             e = zoo.entry(name)
-            where = "inside the package" if e.kind == "shipped" else str(e.local_path())
-            print(f"{name:18s} {e.kind:8s} {where}\n{'':18s} {e.description}")
+            if e.kind == "shipped":
+                kind, where = e.kind, "inside the package"
+            elif e.local_path().exists():
+                kind, where = e.kind, str(e.local_path())
+            else:  # a registry entry whose weights are not on this machine: say how to get them
+                kind = "not converted yet"
+                where = (f"download from {e.download}, then: {e.how.format(path=e.local_path())}" if e.how
+                         else f"{e.local_path()} does not exist")
+            print(f"{name:18s} {kind:8s} {where}\n{'':18s} {e.description}")
     except (ValueError, OSError) as e:
         return cli.report_error(e, debug=args.debug)
     return 0

@@ -1,6 +1,6 @@
-"""The prepared accelerator run: everything the performance issue asks of a lent GPU, in one call of < 10 min.
+"""The GPU run: the train step, inference and upstream PyTorch measured on one CUDA GPU in < 10 min.
 
-    # on the device machine (see experiments/gpu/README.md for the exact `run` call and what to carry):
+    # on the GPU machine (see experiments/gpu/README.md for the set-up and the exact command):
     python experiments/gpu/run.py --out $OUT/gpu.jsonl --peer-dir .peer/harness --peer-src .peer/src
     # here, on CPU, in the test suite: the same sequence at tiny shapes, upstream skipped unless torch is there
     python experiments/gpu/run.py --dry-run --out /tmp/gpu_dry.jsonl
