@@ -27,7 +27,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import sys
 import time
 
@@ -39,6 +38,7 @@ if REPO not in sys.path:
     sys.path.insert(0, REPO)
 
 from bridge_jax import inference, metrics, visualize  # noqa: E402
+from bridge_jax.bench import timing  # noqa: E402
 from bridge_jax.data import photos  # noqa: E402
 from bridge_jax.eval import baselines  # noqa: E402
 from bridge_jax.eval.datasets import synthetic_frames  # noqa: E402
@@ -292,17 +292,6 @@ def markdown(results: dict, header: str) -> str:
     return "\n".join(lines)
 
 
-def cpu_kind() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            info = f.read()
-    except OSError:
-        return platform.processor() or "unknown CPU"
-    model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), "?")
-    isa = "AVX-512" if " avx512f" in info else ("AVX2" if " avx2" in info else "no AVX2")
-    return f"{os.cpu_count()}-core {model} ({isa})"
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", default="demo", help="comma list of shipped model names or checkpoint paths")
@@ -311,9 +300,14 @@ def main(argv=None) -> int:
     p.add_argument("--synthetic-num", type=int, default=16, help="held-out synthetic frames")
     p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
     p.add_argument("--pictures", default=None, help="folder for the picture panels")
+    p.add_argument("--card", default=None,
+                   help="write the first model's numbers (per check and size, with OpenCV's) as a model-card JSON "
+                        "for `bridge-zoo build NAME --from WORKDIR --card FILE`")
     args = p.parse_args(argv)
-    methods: dict = {"zero motion": "zero", "OpenCV (SGBM filled / DIS medium)": "opencv"}
-    for model in [m for m in args.models.split(",") if m]:
+    opencv = "OpenCV (SGBM filled / DIS medium)"
+    methods: dict = {"zero motion": "zero", opencv: "opencv"}
+    card_labels = {}
+    for i, model in enumerate(m for m in args.models.split(",") if m):
         for size in [s for s in args.sizes.split(",") if s]:
             ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
             pred = inference.load_predictor(model, working_size=ws)
@@ -321,10 +315,12 @@ def main(argv=None) -> int:
             if size == "trained":
                 label += f" ({pred.height}x{pred.width})"
             methods[label] = pred
+            if i == 0:
+                card_labels[size] = label
     results = run_checks(methods, per_photo=args.per_photo, synthetic_num=args.synthetic_num,
                          pictures=args.pictures)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    header = f"## Real-image checks, {stamp}, {cpu_kind()}"
+    header = f"## Real-image checks, {stamp}, {timing.machine()}"
     text = markdown(results, header)
     print(text)
     print("seconds per method:", {k: round(v, 1) for k, v in results["seconds"].items()})
@@ -332,7 +328,13 @@ def main(argv=None) -> int:
         with open(args.out, "w") as f:
             f.write(text + "\n")
         with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
-            json.dump({"date": stamp, "machine": cpu_kind(), **results}, f, indent=1)
+            json.dump({"date": stamp, "machine": timing.machine(), **results}, f, indent=1)
+    if args.card:
+        checks = ("motorcycle", "homography", "heldout_synthetic")
+        card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
+                        "opencv": results[check][opencv]} for check in checks}
+        with open(args.card, "w") as f:
+            json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}"}, f, indent=1)
     return 0
 
 

@@ -151,6 +151,12 @@ def cpu_isa() -> str | None:
     return None
 
 
+def machine() -> str:
+    """One line naming this machine for results: "<cores>-core <CPU model> (<ISA>)"."""
+    isa = cpu_isa()
+    return f"{os.cpu_count()}-core {cpu_model()}" + (f" ({isa})" if isa else "")
+
+
 def loadavg() -> list[float] | None:
     try:
         return [round(x, 2) for x in os.getloadavg()]

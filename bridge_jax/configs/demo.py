@@ -18,13 +18,16 @@ commands" says what a run reaches.
 
 Arguments (comma-separated, e.g. `demo:resnet_md_tiny,paper_loss`): `short` = a 1-minute smoke run;
 `resnet_md_tiny` = the paper's network (tiny widths) instead of pwc_lite; `paper_loss` = every training switch
-at the paper's setting; `long` = a longer recipe (128x256, 6,000 steps: under 2 h
+at the paper's setting; `real` = the synthetic scenes that carry over to real images (photo textures, slanted and
+rotating objects, varied rigs, per-camera photometric differences: `data.synthetic_scene=real`), and with `long`
+the recipe of the shipped `long` model (the demo model fine-tuned on them at 128x256, 4,000 steps, lr 5e-4);
+`long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
 from bridge_jax.configs import default
 
-ARGS = ("short", "resnet_md_tiny", "paper_loss", "long")
+ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real")
 
 
 def get_config(arg=None):
@@ -64,6 +67,12 @@ def get_config(arg=None):
         c.loop.update(num_train_steps=6000, steps_per_epoch=600,  # lr halves at steps 2400 and 4200
                       checkpoint_every=500, eval_every=500, image_every=500)
         c.eval.batch = 4
+    if "real" in opts:  # the synthetic scenes that carry over to real images (data.synthetic_scene)
+        c.data.synthetic_scene = "real"
+        if "long" in opts:  # the shipped `long` model: the demo model fine-tuned on them at 128x256
+            c.init_from = "demo"
+            c.lr = 5e-4
+            c.loop.update(num_train_steps=4000, steps_per_epoch=500, checkpoint_every=250)  # lr halves at 2000
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
         c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4

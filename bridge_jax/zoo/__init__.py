@@ -60,6 +60,9 @@ class Entry:
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` (the `demo` config: 64x128, "
                   "2,500 steps on the built-in synthetic stereo video); a starting point, not a KITTI model"),
+    "long": Entry("long", "shipped", "pwc_lite fine-tuned from `demo` at 128x256 on the synthetic scenes that carry "
+                  "over to real images (config `demo:long,real`: photo textures, slanted and rotating objects, varied "
+                  "rigs, per-camera photometric differences); for your own images, best at --working-size native"),
     **{f"upstream_ver_{v}": Entry(
         f"upstream_ver_{v}", "local",
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
@@ -209,10 +212,35 @@ def resolve_path(spec: str | os.PathLike) -> str:
     return os.fspath(spec)
 
 
-def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None) -> Path:
+def training_summary(workdir: str | os.PathLike) -> dict:
+    """How a training workdir's run went, from its metrics log: {"first_step", "last_step", "seconds" (wall time
+    between its first and last logged training steps, resumptions included)}; {} without a log."""
+    first = last = None
+    try:
+        with open(Path(workdir) / "metrics.jsonl") as f:
+            for line in f:
+                try:
+                    rec = json.loads(line)
+                except ValueError:
+                    continue
+                if rec.get("kind") == "train" and "time" in rec:
+                    first = first or rec
+                    last = rec
+    except OSError:
+        return {}
+    if first is None:
+        return {}
+    return {"first_step": int(first["step"]), "last_step": int(last["step"]),
+            "seconds": round(float(last["time"]) - float(first["time"]), 1)}
+
+
+def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None,
+                  card: Optional[dict] = None, machine: Optional[str] = None) -> Path:
     """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
     config changes, retrain with `make demo` and run `bridge-zoo build demo --from
-    work/demo/train`). The json records the run's config so a test notices when the config moved on."""
+    work/demo/train`). The json records the run's config so a test notices when the config moved on, and its
+    card: the training time (`training_summary`) on `machine` (default: this one), plus the entries of `card`
+    (e.g. {"real_images": numbers of experiments/real_images.py}) that `bridge-zoo show` prints."""
     import io
 
     from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
@@ -227,8 +255,41 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     data = buf.getvalue()
     meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
             "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
-            "validation": validation if validation is not None else run_workdir.last_validation(str(workdir))}
+            "validation": validation if validation is not None else run_workdir.last_validation(str(workdir)),
+            "training": dict(training_summary(workdir), machine=machine or _this_machine())}
+    meta.update(card or {})
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
     files.write_json(js, meta)
     return npz
+
+
+def _this_machine() -> str:
+    from bridge_jax.bench import timing
+    return timing.machine()
+
+
+def card_lines(name: str) -> list[str]:
+    """A shipped model's card as text lines (what `bridge-zoo show NAME` prints): model, working size, recipe,
+    steps, training time and machine, validation and real-image numbers."""
+    meta = info(name)
+    cfg = meta.get("config", {})
+    loop = dict(cfg, **cfg.get("loop", {}))
+    lines = [f"{name}: {meta['model']['name']} trained at {meta['height']}x{meta['width']}, {meta['steps']} steps",
+             f"  data: {cfg.get('data', {}).get('source', '?')} scenes "
+             f"{cfg.get('data', {}).get('synthetic_scene', 'demo')}; lr {cfg.get('lr')}, "
+             f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
+    t = meta.get("training") or {}
+    if t:
+        hours = t.get("seconds", 0) / 3600
+        lines.append(f"  trained: steps {t.get('first_step', '?')}-{t.get('last_step', '?')} in {hours:.2f} h on "
+                     f"{t.get('machine', '?')}")
+    val = meta.get("validation") or {}
+    if val:
+        lines.append("  validation (synthetic, trained size): " + ", ".join(
+            f"{k} {val[k]:.3f}" for k in ("flow_epe_all", "flow_epe_vs_zero", "disp_epe_all", "disp_d1_all")
+            if isinstance(val.get(k), (int, float))))
+    for check, by_size in (meta.get("real_images") or {}).items():
+        for size, values in by_size.items():
+            lines.append(f"  {check} @ {size}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
+    return lines

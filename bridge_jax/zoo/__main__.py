@@ -1,14 +1,17 @@
 """List the models known by name, or (maintainers) regenerate a shipped model's weights from a training workdir.
 
     bridge-zoo                                      # names, kinds, where each one is (or how to get it)
+    bridge-zoo show long                            # a shipped model's card: recipe, steps, time, numbers
     bridge-zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
+    bridge-zoo build long --from work/long/train --card work/long/card.json   # with its real-image numbers
 
 `build` writes bridge_jax/zoo/<name>.npz (float32 params, compressed) and <name>.json (model, working size, the
-run's config, steps, last validation, SHA-256); the test suite checks the shipped model against the current
+run's config, steps, training time and machine, last validation, SHA-256, and the entries of --card); the test suite checks the shipped model against the current
 `demo` config and that it beats zero motion on the synthetic validation cycles.
 """
 from __future__ import annotations
 
+import json
 import sys
 
 from bridge_jax import cli, zoo
@@ -16,11 +19,17 @@ from bridge_jax import cli, zoo
 
 def build_parser():
     p = cli.make_parser("bridge_jax.zoo", __doc__)
-    sub = p.add_subparsers(dest="command", metavar="{list,build}")
+    sub = p.add_subparsers(dest="command", metavar="{list,show,build}")
     sub.add_parser("list", help="list the model names (the default)")
     b = sub.add_parser("build", help="write a shipped model's npz + json from a finished training workdir")
     b.add_argument("name", help="registry name of a shipped model (e.g. demo)")
     b.add_argument("--from", dest="workdir", required=True, help="finished training workdir to take the params of")
+    b.add_argument("--card", default=None,
+                   help="a JSON file whose entries join the model's card, e.g. {\"real_images\": {...}} written "
+                        "by experiments/real_images.py --card")
+    b.add_argument("--machine", default=None, help="the machine it was trained on (default: this one)")
+    s = sub.add_parser("show", help="print a shipped model's card (recipe, steps, training time, numbers)")
+    s.add_argument("name", help="registry name of a shipped model (e.g. long)")
     cli.add_debug_flag(p)
     return p
 
@@ -31,7 +40,21 @@ def main(argv=None) -> int:
         if args.command == "build":
             if zoo.entry(args.name).kind != "shipped":
                 raise ValueError(f"{args.name!r} is not a shipped model (only those are built from a workdir)")
-            print(f"wrote {zoo.build_shipped(args.name, args.workdir)}")
+            card = None
+            if args.card:
+                try:
+                    with open(args.card) as f:
+                        card = json.load(f)
+                except ValueError as e:
+                    raise ValueError(f"--card {args.card}: not JSON ({e})") from None
+                if not isinstance(card, dict):
+                    raise ValueError(f"--card {args.card}: expected a JSON object")
+            print(f"wrote {zoo.build_shipped(args.name, args.workdir, card=card, machine=args.machine)}")
+            return 0
+        if args.command == "show":
+            if zoo.entry(args.name).kind != "shipped":
+                raise ValueError(f"{args.name!r} is not a shipped model; `bridge-zoo` lists where it is")
+            print("\n".join(zoo.card_lines(args.name)))
             return 0
         for name in zoo.names():
             e = zoo.entry(name)
