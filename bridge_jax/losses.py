@@ -7,8 +7,8 @@ Equations of the paper (Sec. 3), each the function that the train step runs:
   eq. 8   edge-aware smoothness  L_sm           `smoothness_loss` (2nd-order on the map, 1st-order on the image)
   eq. 9   left-right consistency  L_lr          `lr_consistency_loss` (stereo pairs, fraction units)
   eqs. 10-12  2-warp consistency  L_2warp      `two_warp_chains` (which images, maps and masks) +
-                                               `two_warp_estimates` (eqs. 10-11), then eq. 7's function (eq. 12;
-                                               `two_warp_loss` is the same for the chains alone)
+                                               `two_warp_estimates` (eqs. 10-11), then eq. 7's function on
+                                               their rows (eq. 12), in `scale_terms`' one `per_row` call
   eq. 13  total loss                            `cycle_loss`: the weighted sum over scales, pairs and directions
 
 `cycle_loss` does the warps itself (for each scale one batched gather of everything that is warped by the same
@@ -480,7 +480,9 @@ def two_warp_estimates(chains: tuple[TwoWarpChain, ...]):
         O'      = W(O, mask_flow)     (eq. 10; O itself when the chain has no mask_flow)
         I_2warp = W(image, flow)      (eq. 11; `image` is already a 1-warp reconstruction)
 
-    All warps of the chains (images, then the masks that are warped) go through one gather.
+    All warps of the chains (images, then the masks that are warped) go through one gather. Eq. 12 is eq. 7's
+    function on these rows, photometric(I_2warp, target, O'): `scale_terms` stacks them after the 1-warp rows in
+    its one `per_row` call and takes one `group_mean` per chain.
     """
     srcs = [c.image for c in chains]
     flows = [c.flow for c in chains]
@@ -497,16 +499,6 @@ def two_warp_estimates(chains: tuple[TwoWarpChain, ...]):
         else:
             masks.append(c.mask)
     return out[:len(chains)], jnp.stack([c.target for c in chains]), jnp.stack(masks)
-
-
-def two_warp_loss(chains: tuple[TwoWarpChain, ...], photometric=photometric_loss) -> tuple[Photometric, ...]:
-    """2-warp consistency loss (paper eqs. 10-12), one `Photometric` (or `Census`, with `photometric=census_loss`)
-    per chain: L_2warp = photometric(I_2warp, target, O') (eq. 12) on `two_warp_estimates` (eqs. 10-11).
-
-    (`scale_terms` compares the 2-warp estimates in the same call as the 1-warp reconstructions instead.)
-    """
-    rows = per_row(photometric, *two_warp_estimates(chains))
-    return tuple(group_mean(rows, i, i + 1) for i in range(len(chains)))
 
 
 def per_row(term, *args):

@@ -20,16 +20,23 @@ def photometric_value(estimate, target, mask, alpha=0.85):
     return float(losses.reduce_over_cycles(losses.photometric_loss(estimate, target, mask), "cycle").value(alpha))
 
 
+def two_warp_terms(chains, photometric=losses.photometric_loss):
+    """Eq. 12 of each chain as `losses.scale_terms` computes it: the photometric term on the stacked rows of
+    `two_warp_estimates` (eqs. 10-11) in one `per_row` call, then one `group_mean` per chain."""
+    rows = losses.per_row(photometric, *losses.two_warp_estimates(chains))
+    return tuple(losses.group_mean(rows, i, i + 1) for i in range(len(chains)))
+
+
 def two_warp_value(px, former, latter, mask_fwd, mask_bwd, cfg):
     """The weighted 2-warp loss of one cycle at one scale and its per-chain values, through the functions the
-    training runs (two_warp_chains, then two_warp_loss = two_warp_estimates + the photometric term) on the 1-warp
-    reconstructions of the maps."""
+    training runs (`two_warp_chains`, then `two_warp_terms`) on the 1-warp reconstructions of the maps."""
     est_fwd = geometry.warp(latter, px[:4])
     est_bwd = geometry.warp(former, px[4:])
     p = losses.PairMaps(former, latter, px[:4], px[4:], est_fwd, est_bwd, mask_fwd, mask_bwd)
     chains = losses.two_warp_chains(cfg.two_warp, p, cfg.two_warp_target)
+    photometric = losses.PHOTOMETRIC_LOSSES[cfg.photometric]
     terms = {c.name: float(losses.reduce_over_cycles(t, "cycle").value(cfg.alpha))
-             for c, t in zip(chains, losses.two_warp_loss(chains))}
+             for c, t in zip(chains, two_warp_terms(chains, photometric))}
     return cfg.two_warp_term_weight() * sum(terms.values()), terms
 
 
@@ -267,7 +274,7 @@ def test_two_warp_chains_match_numpy_reference(rng):
     p = losses.PairMaps(*(f32(x) for x in (former, latter, px_f, px_b, est_f, est_b, m_f, m_b)))
     chains = losses.two_warp_chains("full2", p, "reconstruction")
     assert [c.name for c in chains] == ["L_t1->L_t->R_t", "R_t1->R_t->L_t"]
-    got = [float(losses.reduce_over_cycles(t, "cycle").value(0.85)) for t in losses.two_warp_loss(chains)]
+    got = [float(losses.reduce_over_cycles(t, "cycle").value(0.85)) for t in two_warp_terms(chains)]
     S1, FL, FR, S0 = cyc.STEREO_T1, cyc.FLOW_LEFT, cyc.FLOW_RIGHT, cyc.STEREO_T
     # (image, its second map, target, mask, map that carries the mask)
     spec = [(est_f[FL], px_b[S0], est_f[FR], m_f[FL], px_b[S1]), (est_f[FR], px_f[S0], est_f[FL], m_f[FR], px_f[S1])]

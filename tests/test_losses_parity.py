@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from bridge_jax import cycle as cyc
 from bridge_jax import geometry, losses
 from tests.fixture import fixture_file
 
@@ -130,17 +131,34 @@ def test_every_loss_term_matches_upstream(ref):
 
 
 @pytest.mark.parametrize("s", range(4))
-def test_two_warp_masks_and_estimates_match_upstream(ref, s):
-    """Type-2 (full-2) chain internals: the warped masks and 2-warp estimates, by hand from the fixture."""
-    fwd = per_cycle_rows(nhwc(ref[f"syn_fwd_px_{s}"]))
-    bwd = per_cycle_rows(nhwc(ref[f"syn_bwd_px_{s}"]))
-    fw_mask = per_cycle_rows(nhwc(ref[f"syn_fw_mask_{s}"]))
-    est_fwd = per_cycle_rows(nhwc(ref[f"syn_est_fwd_{s}"]))
-    # (a) O(L_t->L_t1) warped by D(R_t1->L_t1); estimate est(L_t from L_t1) warped by D(R_t->L_t)
-    np.testing.assert_allclose(geometry.warp(fw_mask[:, 1], bwd[:, 0]), nhwc(ref[f"syn_w2_mask_a_{s}"]), atol=1e-5)
-    np.testing.assert_allclose(geometry.warp(est_fwd[:, 1], bwd[:, 3]), nhwc(ref[f"syn_w2_est_a_{s}"]), atol=2e-6)
-    np.testing.assert_allclose(geometry.warp(fw_mask[:, 2], fwd[:, 0]), nhwc(ref[f"syn_w2_mask_b_{s}"]), atol=1e-5)
-    np.testing.assert_allclose(geometry.warp(est_fwd[:, 2], fwd[:, 3]), nhwc(ref[f"syn_w2_est_b_{s}"]), atol=2e-6)
+@pytest.mark.parametrize("prefix", ["syn_", "net_"])
+def test_two_warp_masks_estimates_and_terms_match_upstream(ref, prefix, s):
+    """Type-2 (full-2) through what trains, from the fixture's maps, 1-warp reconstructions and occlusion masks of
+    both cycles: `two_warp_chains`, `two_warp_estimates` (eqs. 10-11: the warped masks and 2-warp estimates), and
+    eq. 12 as `scale_terms` computes it (the photometric term on their stacked rows, `per_row`, one `group_mean`
+    per chain), reduced over the cycles and weighted as upstream, against upstream's masks, estimates and terms."""
+    cfg = losses.LossConfig.upstream(two_warp="full2")
+    rows = lambda key: jnp.asarray(per_cycle_rows(nhwc(ref[f"{key}_{s}"])))  # (2 cycles, 4 pairs, h, w, C)
+    stereo = np.array([pair.is_stereo for pair in cyc.PAIRS])[:, None, None, None]
+    photometric = losses.PHOTOMETRIC_LOSSES[cfg.photometric]
+
+    def one_cycle(former, latter, px_f, px_b, est_f, est_b, m_f, m_b):
+        m_f, m_b = jnp.where(stereo, 1.0, m_f), jnp.where(stereo, 1.0, m_b)  # as the loss: 1 on stereo pairs
+        p = losses.PairMaps(former, latter, px_f, px_b, est_f, est_b, m_f, m_b)
+        chains = losses.two_warp_chains(cfg.two_warp, p, cfg.two_warp_target)
+        estimates, targets, masks = losses.two_warp_estimates(chains)
+        photo = losses.per_row(photometric, estimates, targets, masks)
+        return estimates, masks, tuple(losses.group_mean(photo, i, i + 1) for i in range(len(chains)))
+
+    keys = ("pyr_former", "pyr_latter") + tuple(prefix + k for k in ("fwd_px", "bwd_px", "est_fwd", "est_bwd",
+                                                                        "fw_mask", "bw_mask"))
+    estimates, masks, terms = jax.vmap(one_cycle)(*(rows(k) for k in keys))
+    terms = losses.reduce_over_cycles(terms, cfg.reduction)
+    assert len(terms) == 2
+    for i, tag in enumerate("ab"):
+        np.testing.assert_allclose(masks[:, i], nhwc(ref[f"{prefix}w2_mask_{tag}_{s}"]), atol=1e-5)
+        np.testing.assert_allclose(estimates[:, i], nhwc(ref[f"{prefix}w2_est_{tag}_{s}"]), atol=2e-6)
+        close(cfg.two_warp_term_weight() * terms[i].value(cfg.alpha), ref[f"{prefix}w2_{tag}_{s}"])
 
 
 @pytest.mark.parametrize("s", [1, 2, 3])

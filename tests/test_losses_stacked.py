@@ -4,7 +4,7 @@ call per direction and per chain, from the public equation functions, and requir
 same gradients: on random cycles for every loss switch, and on the upstream fixture's maps and pyramids.
 
 Float32 sums over different groupings differ in the last bits, so the float32 checks allow 1e-6 (absolute, on
-terms of order 0.01-1; 5e-5 relative on the fixture's 256x512 sums); under float64 the two must agree to 1e-12:
+terms of order 0.01-1; 5e-5 relative on the fixture's 64x128 sums); under float64 the two must agree to 1e-12:
 the stacking is exact algebra.
 """
 
@@ -17,6 +17,7 @@ from bridge_jax import cycle as cyc
 from bridge_jax import geometry, losses
 from bridge_jax.bench.measure import random_maps
 from tests.fixture import fixture_file
+from tests.test_losses import two_warp_terms
 from tests.test_losses_parity import fixture_maps, fixture_pyramids
 
 CONFIGS = {
@@ -133,7 +134,7 @@ FIXTURE_CASES = {
 @pytest.mark.parametrize("dtype", ["float32", pytest.param("float64", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("case", ["syn_upstream_full2", pytest.param("net_paper_full3", marks=pytest.mark.slow)])
 def test_stacked_terms_equal_per_call_terms_on_the_upstream_fixture(case, dtype):
-    """The fixture's 2 cycles at 256x512: float32 (sums of 10^5 pixels: 5e-5 relative) and float64 (exact)."""
+    """The fixture's 2 cycles at 64x128: float32 (sums of 10^5 pixels: 5e-5 relative) and float64 (exact)."""
     ref = dict(np.load(fixture_file("reference.npz")))
     prefix, cfg = FIXTURE_CASES[case]
     maps, pyramids = fixture_maps(ref, prefix), fixture_pyramids(ref)
@@ -145,17 +146,18 @@ def test_stacked_terms_equal_per_call_terms_on_the_upstream_fixture(case, dtype)
         assert_same_terms_and_grads(f64(maps), f64(pyramids[0]), f64(pyramids), cfg, atol=1e-12)
 
 
-def test_two_warp_loss_is_the_photometric_loss_of_each_chain():
-    """`two_warp_loss` (one per_row call over the chains) against eq. 12 applied to each chain alone."""
+def test_stacked_two_warp_rows_are_the_photometric_loss_of_each_chain():
+    """Eq. 12 as training runs it (one per_row call over the rows of `two_warp_estimates`, a group_mean per chain)
+    against eq. 12 applied to each chain alone."""
     cfg = losses.LossConfig(two_warp="full2")
     maps, cycles, pyramids = random_case(cfg, jnp.float32, b=1)
     px, frames = maps["px"][1], pyramids[1][0]
     former, latter = cyc.pair_images(frames)
     est_f, est_b = geometry.warp(latter, px[:4]), geometry.warp(former, px[4:])
-    ones = jnp.ones(former.shape[:-1] + (1,))
-    chains = losses.two_warp_chains("full2", losses.PairMaps(former, latter, px[:4], px[4:], est_f, est_b,
-                                                             0.5 * ones, 0.8 * ones))
-    got = losses.two_warp_loss(chains)
+    # a different mask on every pair and pixel, so that a chain given another chain's mask shows
+    m_f, m_b = jnp.asarray(np.random.default_rng(5).uniform(0.2, 1.0, (2,) + former.shape[:-1] + (1,)), jnp.float32)
+    chains = losses.two_warp_chains("full2", losses.PairMaps(former, latter, px[:4], px[4:], est_f, est_b, m_f, m_b))
+    got = two_warp_terms(chains)
     for c, g in zip(chains, got):
         mask = geometry.warp(c.mask, c.mask_flow) if c.mask_flow is not None else c.mask
         want = losses.photometric_loss(geometry.warp(c.image, c.flow), c.target, mask)
