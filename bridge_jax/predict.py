@@ -400,12 +400,12 @@ class Writer:
         if self.max_flow is None:
             sample = _sample(flow.reshape(-1, 2)).astype(np.float64)
             self.max_flow = max(1.0, float(np.percentile(np.sqrt((sample ** 2).sum(-1)), 99)))
-        color = _by_rows(lambda f: visualize.flow_to_color(f, max_flow=self.max_flow), flow)
-        visualize.write_image(self._path(sub, index, ".png"), color)
-        if "png" in self.raw:
+        if "png" in self.raw:  # before the colour picture: the two large arrays are never held together
             valid = np.broadcast_to(True, flow.shape[:2])
             files.write_bytes(self._path(f"{sub}_kitti", index, ".png"),
                               kitti.encode_png16(_by_rows(kitti.flow_png_array, flow, valid), "flow"))
+        color = _by_rows(lambda f: visualize.flow_to_color(f, max_flow=self.max_flow), flow)
+        visualize.write_image(self._path(sub, index, ".png"), color)
         if "npy" in self.raw:
             np.save(self._path(f"{sub}_npy", index, ".npy"), np.asarray(flow, np.float32))
         if "flo" in self.raw:
@@ -550,7 +550,8 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
 
 
 def _check_minimum(model_name: str, image: np.ndarray, source: Source, index: int) -> None:
-    """PredictError naming the input when frame `index` is below the model's minimum (`inference.minimum_input_size`)."""
+    """PredictError naming the input when frame `index` is below the model's minimum
+    (`inference.minimum_input_size`)."""
     h, w = inference.input_size(image)
     low = inference.minimum_input_size(model_name)
     if h < low[0] or w < low[1]:

@@ -140,12 +140,16 @@ def encode_flow_png(flow: np.ndarray, valid: np.ndarray | None = None) -> bytes:
 
     Values are clipped to the representable range ±512 px; invalid pixels are stored as (0, 0, 0).
     """
-    return encode_png16(flow_png_array(flow, valid), "flow")
+    return bytes(encode_png16(flow_png_array(flow, valid), "flow"))
 
 
-def encode_png16(array: np.ndarray, name: str) -> bytes:
-    """A uint16 (H, W[, 3]) array (`flow_png_array`, `disp_png_array`) → PNG bytes."""
-    return _encode(".png", array, name)
+def encode_png16(array: np.ndarray, name: str) -> memoryview:
+    """A uint16 (H, W[, 3]) array (`flow_png_array`, `disp_png_array`) → the PNG's bytes, as a view of OpenCV's
+    buffer (no copy: a large map's PNG is not held twice)."""
+    ok, buf = cv2.imencode(".png", array)
+    if not ok:
+        raise ValueError(f"could not encode {name} as .png")
+    return memoryview(buf).cast("B")
 
 
 def decode_flow_png(data: bytes, path: str = "<bytes>") -> tuple[np.ndarray, np.ndarray]:
@@ -185,7 +189,7 @@ def disp_png_array(disp: np.ndarray, valid: np.ndarray | None = None) -> np.ndar
 
 def encode_disp_png(disp: np.ndarray, valid: np.ndarray | None = None) -> bytes:
     """disp float (H, W) pixels ≥ 0, valid bool (default: finite and > 0) → KITTI disparity PNG bytes."""
-    return encode_png16(disp_png_array(disp, valid), "disparity")
+    return bytes(encode_png16(disp_png_array(disp, valid), "disparity"))
 
 
 def decode_disp_png(data: bytes, path: str = "<bytes>") -> tuple[np.ndarray, np.ndarray]:
