@@ -203,8 +203,9 @@ def test_status_after_two_ctrl_c_and_after_sigkill(tmp_path):
                          stderr=subprocess.PIPE, text=True)
     _wait_for_step(wd, p)
     p.send_signal(signal.SIGINT)
+    time.sleep(0.1)  # two identical signals sent at once are delivered as one (a person presses twice)
     p.send_signal(signal.SIGINT)
-    assert p.wait(60) == 130
+    assert p.wait(60) == 130, p.stderr.read()[-2000:]
     st = workdir.read_status(str(wd))
     assert st["status"] == "aborted" and st["signal"] == signal.SIGINT and st["step"] >= 1
     assert train.main(["--status", str(wd)]) == 1
@@ -213,8 +214,6 @@ def test_status_after_two_ctrl_c_and_after_sigkill(tmp_path):
     p = subprocess.Popen(train_cli(str(wd), "--config.loop.num_train_steps=100000"), env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     st = _wait_for_step(wd, p)
-    time.sleep(1.5)
-    assert workdir.read_status(str(wd))["step"] > st["step"] or True  # steps go on (speed depends on the machine)
     p.kill()
     p.wait(30)
     time.sleep(2.0)  # > 3 heartbeat periods of 0.5 s
