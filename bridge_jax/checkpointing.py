@@ -509,6 +509,21 @@ def quiet_save_failure_noise() -> None:
     _save_noise_quieted = True
 
 
+def _first_bad_json(folder: Path) -> Path | None:
+    """The first small JSON file of a checkpoint folder (orbax metadata, the data iterator's state) that does not
+    parse: a JSONDecodeError says what is wrong but not in which file."""
+    for root, _, names in sorted(os.walk(folder)):
+        for name in sorted(names):
+            path = Path(root) / name
+            if name.endswith(".json") or name in ("_METADATA", "_CHECKPOINT_METADATA", "_sharding"):
+                try:
+                    if path.stat().st_size < 2**24:
+                        json.loads(path.read_bytes() or b"?")
+                except (OSError, ValueError):
+                    return path
+    return None
+
+
 class TrainCheckpointer:
     """Thin layer over orbax CheckpointManager for WORKDIR/checkpoints/<step>/.
 
@@ -532,9 +547,11 @@ class TrainCheckpointer:
         options = ocp.CheckpointManagerOptions(
             max_to_keep=int(keep) if keep and int(keep) > 0 else None,
             enable_async_checkpointing=bool(async_save), create=True)
-        self.manager = ocp.CheckpointManager(
-            self.directory, options=options, item_names=(STATE_ITEM, DATA_ITEM),
-            item_handlers={STATE_ITEM: ocp.StandardCheckpointHandler(), DATA_ITEM: grain_ckpt.CheckpointHandler()})
+        with _quiet_item_dir_metadata():  # an empty or broken step dir: restore_latest says so, by name
+            self.manager = ocp.CheckpointManager(
+                self.directory, options=options, item_names=(STATE_ITEM, DATA_ITEM),
+                item_handlers={STATE_ITEM: ocp.StandardCheckpointHandler(),
+                               DATA_ITEM: grain_ckpt.CheckpointHandler()})
         self.broken: dict[int, str] = {}  # step -> reason, found by restore_latest and not yet moved aside
         self.failed: CheckpointSaveError | None = None  # a failed write: raised again by every later save / wait
         self._saving: int | None = None  # the step of the save in flight (async)
@@ -654,7 +671,8 @@ class TrainCheckpointer:
             state, data_state = self.restore(step, abstract_state)
         except Exception as e:  # orbax / tensorstore / json raise many types on truncated or garbled files
             _quiet_failed_read_noise()
-            return _reason(e), None, {}
+            bad = _first_bad_json(step_dir) if isinstance(e, json.JSONDecodeError) else None
+            return (f"{bad}: " if bad else "") + _reason(e), None, {}
         # Resuming into NaN/Inf is useless (every step would be skipped): such a state counts as broken.
         parts = ([("params", state["params"])] + [(k, v) for k, v in state.items() if k != "params"]
                  if isinstance(state, dict) and "params" in state else [("state", state)])
@@ -684,7 +702,8 @@ class TrainCheckpointer:
             return None
         broken: list[tuple[int, str]] = []
         for step in steps:
-            why, state, data_state = self._unusable(step, abstract_state)
+            with _quiet_item_dir_metadata():
+                why, state, data_state = self._unusable(step, abstract_state)
             if not why:
                 break
             broken.append((step, why))

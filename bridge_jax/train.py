@@ -220,9 +220,9 @@ class _NonFiniteGuard:
         self.in_row += 1
         self.total += 1
         self.logger.scalars(step, {"nonfinite_total": self.total, "loss": metrics["loss"]}, kind="skip")
-        if self.is_main:
-            print(f"step {step}: non-finite loss/gradient, update skipped ({self.in_row} in a row, {self.total} in "
-                  "total)", file=sys.stderr, flush=True)
+        if self.is_main and self.in_row == 1:  # the first of a row; the rest are counted (metrics.jsonl, the error)
+            print(f"step {step}: non-finite loss/gradient, update skipped ({self.total} in total; the run stops after "
+                  f"{self.max_in_row} in a row)", file=sys.stderr, flush=True)
         if self.in_row >= self.max_in_row:
             self.ckpt.wait()
             last = self.ckpt.latest_step()
@@ -264,7 +264,7 @@ def _restore(ckpt: checkpointing.TrainCheckpointer, state, data_iter, is_main: b
         data_iter.set_state(found.data_state)
     start_step = int(jax.device_get(found.state["step"]))
     if is_main:
-        skipped = "".join(f"; skipped broken step {s} ({why})" for s, why in found.broken)
+        skipped = "".join(f"; skipped broken step {s} (see the warning)" for s, _ in found.broken)
         print(f"Resuming from {ckpt.directory}/{found.step} (step {start_step}){skipped}.", flush=True)
     return found.state, start_step
 
@@ -449,9 +449,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
             run_status.end("aborted", signal=int(signum), reason=f"signal {int(signum)} received twice: exited at once "
                            "without saving; run the same command to resume from the last checkpoint")
 
-        with _StopSignals(announce=is_main, on_abort=abort) as stop, tqdm(total=num_steps, initial=start_step, unit="step",
-                                                          dynamic_ncols=True, file=sys.stderr,
-                                                          disable=not (is_main and loop.progress_bar)) as bar:
+        with _StopSignals(announce=is_main, on_abort=abort) as stop, \
+                tqdm(total=num_steps, initial=start_step, unit="step", dynamic_ncols=True, file=sys.stderr,
+                     disable=not (is_main and loop.progress_bar)) as bar:
             try:
                 while step < num_steps:
                     if stop.received is not None:
@@ -510,7 +510,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         latest = ckpt.latest_step()
         return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
                 "nonfinite_total": guard.total, "last_metrics": {k: scalar(v) for k, v in last_metrics.items()},
-                "validation": val, "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
+                "validation": val,
+                "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
                 "skipped_data": dataset.skips.report(), "state": state}
     except BaseException as e:  # every way out that is not a return: status.json says what happened
         if isinstance(e, (KeyboardInterrupt, SystemExit)):

@@ -66,6 +66,8 @@ def check_image_bytes(data: bytes, path: str = "<bytes>") -> None:
     """
     if len(data) == 0:
         raise CorruptImageError(path, "empty file")
+    if len(data) < 8 and b"\x89PNG\r\n\x1a\n".startswith(bytes(data)):
+        raise CorruptImageError(path, f"truncated PNG (only {len(data)} bytes)")
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         if b"IEND" not in data[-16:]:
             raise CorruptImageError(path, "truncated PNG (no IEND chunk at the end)")
