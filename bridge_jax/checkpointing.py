@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import sys
 import time
 import warnings
@@ -422,6 +423,107 @@ class Restored(NamedTuple):
     broken: list[tuple[int, str]]  # newer steps skipped, newest first: (step, reason)
 
 
+class CheckpointSaveError(OSError):
+    """Writing a checkpoint failed (a full disk, no permission, ...): one line naming the folder, the space a
+    checkpoint needs and what is free; the partial step was removed and the last good checkpoint kept."""
+
+
+# How orbax / tensorstore report a failed write from their writer threads (as ValueError / RuntimeError text).
+_IO_ERROR_MARKS = ("RESOURCE_EXHAUSTED", "PERMISSION_DENIED", "os_error_code", "No space left", "Disk quota",
+                   "Read-only file system", "Permission denied", "Input/output error")
+TMP_SUFFIX = ".orbax-checkpoint-tmp"  # orbax's name for a step dir being written (renamed when complete)
+
+
+def is_save_io_error(error: BaseException) -> bool:
+    """Whether `error` (or an exception it was raised from) is a failed write to the disk."""
+    seen = 0
+    while error is not None and seen < 10:
+        if isinstance(error, OSError) or any(m in str(error) for m in _IO_ERROR_MARKS):
+            return True
+        error, seen = error.__cause__ or error.__context__, seen + 1
+    return False
+
+
+def _io_cause(error: BaseException) -> str:
+    """The operating system's words for a failed write ("No space left on device"), else the error's first line."""
+    text = str(error)
+    for mark in ("No space left on device", "Disk quota exceeded", "Read-only file system", "Permission denied",
+                 "Input/output error"):
+        if mark in text:
+            return mark
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    return _reason(error, 160)
+
+
+def _tree_size(path: Path) -> int:
+    total = 0
+    for root, _, names in os.walk(path):
+        for n in names:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(root, n)).st_size
+    return total
+
+
+def _free_bytes(path: str) -> int | None:
+    with contextlib.suppress(OSError):
+        return shutil.disk_usage(path).free
+    return None
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB" if n >= 2**20 else f"{max(1, round(n / 1024))} KiB"
+
+
+def _save_noise(record: logging.LogRecord) -> bool:
+    """A log record that only repeats a failed checkpoint write (already reported as one line): orbax's errors
+    from its writer threads, asyncio's "exception was never retrieved" of their futures."""
+    text = record.getMessage()
+    if record.exc_info and record.exc_info[1] is not None:
+        text += " " + str(record.exc_info[1])
+    if record.name == "asyncio":
+        return "never retrieved" in text and any(m in text for m in _IO_ERROR_MARKS)
+    return any(m in text for m in _IO_ERROR_MARKS + ("Save Finalize thread (save_finalize) failed",
+                                                     "Commit callback in background save thread"))
+
+
+class _DropSaveNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not _save_noise(record)
+
+
+_save_noise_quieted = False
+
+
+def quiet_save_failure_noise() -> None:
+    """Drops (once installed, for the process) what a failed checkpoint write prints besides its one error line:
+    orbax's ERROR records and asyncio's "exception was never retrieved" about the same write, and the "Event loop
+    is closed" tracebacks of its threads (`_quiet_failed_read_noise`). Other errors pass; the command line does
+    not call it with --debug."""
+    global _save_noise_quieted
+    if _save_noise_quieted:
+        return
+    for name in ("absl", "asyncio"):
+        logging.getLogger(name).addFilter(_DropSaveNoise())
+    _quiet_failed_read_noise()
+    _save_noise_quieted = True
+
+
+def _first_bad_json(folder: Path) -> Path | None:
+    """The first small JSON file of a checkpoint folder (orbax metadata, the data iterator's state) that does not
+    parse: a JSONDecodeError says what is wrong but not in which file."""
+    for root, _, names in sorted(os.walk(folder)):
+        for name in sorted(names):
+            path = Path(root) / name
+            if name.endswith(".json") or name in ("_METADATA", "_CHECKPOINT_METADATA", "_sharding"):
+                try:
+                    if path.stat().st_size < 2**24:
+                        json.loads(path.read_bytes() or b"?")
+                except (OSError, ValueError):
+                    return path
+    return None
+
+
 class TrainCheckpointer:
     """Thin layer over orbax CheckpointManager for WORKDIR/checkpoints/<step>/.
 
@@ -441,13 +543,19 @@ class TrainCheckpointer:
                  async_save: bool = True):
         self.directory = str(Path(workdir).absolute() / CHECKPOINTS_DIR)
         self.save_every = int(save_every)
+        self.keep = int(keep) if keep and int(keep) > 0 else None
         options = ocp.CheckpointManagerOptions(
             max_to_keep=int(keep) if keep and int(keep) > 0 else None,
             enable_async_checkpointing=bool(async_save), create=True)
-        self.manager = ocp.CheckpointManager(
-            self.directory, options=options, item_names=(STATE_ITEM, DATA_ITEM),
-            item_handlers={STATE_ITEM: ocp.StandardCheckpointHandler(), DATA_ITEM: grain_ckpt.CheckpointHandler()})
+        with _quiet_item_dir_metadata():  # an empty or broken step dir: restore_latest says so, by name
+            self.manager = ocp.CheckpointManager(
+                self.directory, options=options, item_names=(STATE_ITEM, DATA_ITEM),
+                item_handlers={STATE_ITEM: ocp.StandardCheckpointHandler(),
+                               DATA_ITEM: grain_ckpt.CheckpointHandler()})
         self.broken: dict[int, str] = {}  # step -> reason, found by restore_latest and not yet moved aside
+        self.failed: CheckpointSaveError | None = None  # a failed write: raised again by every later save / wait
+        self._saving: int | None = None  # the step of the save in flight (async)
+        self._state_bytes: int | None = None
 
     def latest_step(self) -> int | None:
         """The newest step saved, known-broken steps excluded (the last good checkpoint)."""
@@ -474,9 +582,49 @@ class TrainCheckpointer:
         if step in self.manager.all_steps():
             return False
         snapshot = _IteratorSnapshot(json.dumps(data_state if data_state is not None else {}).encode())
-        return bool(self.manager.save(step, args=ocp.args.Composite(
-            **{STATE_ITEM: ocp.args.StandardSave(state), DATA_ITEM: grain_ckpt.CheckpointSave(snapshot)}),
-            force=True))
+        with self._save_errors(step):
+            saved = bool(self.manager.save(step, args=ocp.args.Composite(
+                **{STATE_ITEM: ocp.args.StandardSave(state), DATA_ITEM: grain_ckpt.CheckpointSave(snapshot)}),
+                force=True))
+        if saved:
+            self._saving = step
+            if self._state_bytes is None:
+                self._state_bytes = sum(int(getattr(x, "nbytes", 0)) for x in jax.tree.leaves(state))
+        return saved
+
+    @contextlib.contextmanager
+    def _save_errors(self, step: int | None = None):
+        """Turns a failed write (here or reported from orbax's writer threads) into one CheckpointSaveError:
+        the partial `<step>.orbax-checkpoint-tmp` dirs are removed and the message names the folder, the
+        space one checkpoint takes and what is free. Other errors pass unchanged."""
+        if self.failed is not None:
+            raise self.failed
+        try:
+            yield
+        except Exception as e:
+            if not is_save_io_error(e):
+                raise
+            with contextlib.suppress(Exception):
+                self.manager.wait_until_finished()  # no writer thread may still add files to what is removed
+            self.failed = self._save_error(e, self._saving if self._saving is not None else step)
+            raise self.failed from e
+
+    def _save_error(self, error: BaseException, step: int | None) -> CheckpointSaveError:
+        ckpt_dir = Path(self.directory)
+        if jax.process_index() == 0:
+            for p in ckpt_dir.glob(f"*{TMP_SUFFIX}*"):
+                shutil.rmtree(p, ignore_errors=True)
+        good = [s for s in self.manager.all_steps() if s not in self.broken and (ckpt_dir / str(s)).is_dir()]
+        need = _tree_size(ckpt_dir / str(max(good))) if good else 0
+        need = need or int(self._state_bytes or 0)
+        free = _free_bytes(self.directory)
+        rooms = (self.keep or 1) + 1  # the checkpoints kept and the one being written
+        space = (f"; one checkpoint takes about {_mib(need)}, keeping {rooms - 1} needs room for {rooms}: about "
+                 f"{_mib(need * rooms)}" if need else "") + (f"; {_mib(free)} is free" if free is not None else "")
+        kept = f"the last good checkpoint, step {max(good)}, is kept" if good else "no checkpoint was saved yet"
+        what = f"step {step}" if step is not None else "a checkpoint"
+        return CheckpointSaveError(f"{self.directory}: cannot save {what} ({_io_cause(error)}){space}; "
+                                   f"the partial step was removed and {kept}")
 
     def _move_broken_aside(self) -> None:
         """Renames every step dir in `self.broken` to `<step>.broken-<n>` (first free n), with a warning each."""
@@ -523,7 +671,8 @@ class TrainCheckpointer:
             state, data_state = self.restore(step, abstract_state)
         except Exception as e:  # orbax / tensorstore / json raise many types on truncated or garbled files
             _quiet_failed_read_noise()
-            return _reason(e), None, {}
+            bad = _first_bad_json(step_dir) if isinstance(e, json.JSONDecodeError) else None
+            return (f"{bad}: " if bad else "") + _reason(e), None, {}
         # Resuming into NaN/Inf is useless (every step would be skipped): such a state counts as broken.
         parts = ([("params", state["params"])] + [(k, v) for k, v in state.items() if k != "params"]
                  if isinstance(state, dict) and "params" in state else [("state", state)])
@@ -553,7 +702,8 @@ class TrainCheckpointer:
             return None
         broken: list[tuple[int, str]] = []
         for step in steps:
-            why, state, data_state = self._unusable(step, abstract_state)
+            with _quiet_item_dir_metadata():
+                why, state, data_state = self._unusable(step, abstract_state)
             if not why:
                 break
             broken.append((step, why))
@@ -570,11 +720,21 @@ class TrainCheckpointer:
         return Restored(state, data_state, step, broken)
 
     def wait(self) -> None:
-        self.manager.wait_until_finished()
+        with self._save_errors():
+            self.manager.wait_until_finished()
+        self._saving = None
 
     def close(self) -> None:
-        self.manager.wait_until_finished()
-        self.manager.close()
+        """Waits for the last save and closes; after a failed save, only closes (the failure was raised)."""
+        if self.failed is not None:
+            with contextlib.suppress(Exception):
+                self.manager.close()
+            return
+        try:
+            self.wait()
+        finally:
+            with contextlib.suppress(Exception) if self.failed is not None else contextlib.nullcontext():
+                self.manager.close()
 
 
 def find_train_step_dir(path: str | os.PathLike) -> str | None:

@@ -15,7 +15,11 @@ widths and depths are read off the key names and shapes.
 
 **Safety / no torch needed.** The file is read with a restricted unpickler written here: it rebuilds tensors
 as numpy arrays and turns every other pickled global (e.g. the pickled LR scheduler object in training dicts)
-into an inert placeholder, so no code from the file is executed and PyTorch need not be installed.
+into an inert placeholder, so no code from the file is executed and PyTorch need not be installed. What it
+allocates is bounded: every storage's and tensor's byte size is computed from its header, shape and stride
+before anything is read or allocated, and a tensor that is no plain view of its storage (reads past it,
+negative strides, a stride 0 expanding one element, more elements than the storage) or a storage over 4 GiB is
+one error line ("<file>: tensor <key> claims <N> GiB from a <M> B storage (...)").
 
 Conversion is all-or-nothing: every expected tensor must be present with the right shape and no
 unexpected tensor may remain; otherwise the missing / unexpected / mismatched keys are reported by name and
@@ -106,21 +110,63 @@ class _Storage:
         return self.data
 
 
+# No tensor of an upstream checkpoint comes near this (the largest, a decoder conv, is ~9 MiB): a file claiming
+# more is corrupt or crafted, and is refused before anything of that size is allocated.
+MAX_TENSOR_BYTES = 4 * 2**30
+
+
+def _size_text(nbytes: int) -> str:
+    """`149 GiB`, `12.5 MiB`, `400 B`."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{nbytes} B"
+
+
 class _LazyTensor:
     """A tensor to be materialised from its storage (after legacy files have read their storage bytes)."""
 
     def __init__(self, storage: _Storage, offset: int, size: tuple, stride: tuple):
         self.storage, self.offset, self.size, self.stride = storage, int(offset), tuple(size), tuple(stride)
 
+    def _refusal(self, base: np.ndarray) -> str:
+        """Why the tensor cannot be a view of its storage `base` (without allocating anything), or "". Its
+        byte size is computed from the shape alone; each dimension's stride, the offset and the storage's size
+        must make it an in-bounds view that repeats no element (a stride 0 on a dimension > 1 would expand a
+        tiny storage into the shape's full size)."""
+        size, stride = self.size, self.stride
+        if len(stride) != len(size) or any(not isinstance(v, int) for v in (*size, *stride)):
+            return "a shape and stride that do not match"
+        if any(n < 0 for n in size):
+            return "a negative dimension"
+        numel = int(np.prod(size, dtype=object)) if size else 1
+        nbytes = numel * base.itemsize
+        why = ""
+        if numel == 0:
+            return ""
+        if self.offset < 0 or any(s < 0 for n, s in zip(size, stride) if n > 1):
+            why = "a negative offset or stride"
+        elif any(s == 0 for n, s in zip(size, stride) if n > 1):
+            why = "a stride 0 that repeats one element over a dimension"
+        elif self.offset + sum((n - 1) * s for n, s in zip(size, stride)) >= base.size:
+            why = "reads past the end of its storage"
+        elif numel > base.size:
+            why = "more elements than its storage holds"
+        elif nbytes > MAX_TENSOR_BYTES:
+            why = f"over the {_size_text(MAX_TENSOR_BYTES)} limit of one tensor"
+        if why:
+            return f"claims {_size_text(nbytes)} from a {_size_text(base.size * base.itemsize)} storage ({why})"
+        return ""
+
     def numpy(self) -> np.ndarray:
         base = self.storage.array()
-        if not self.size:
-            return np.array(base[self.offset])
-        extent = self.offset + sum((n - 1) * s for n, s in zip(self.size, self.stride) if n > 0)
+        why = self._refusal(base)
+        if why:
+            raise CheckpointFormatError(why)
         if any(n == 0 for n in self.size):
             return np.zeros(self.size, base.dtype)
-        if extent >= base.size or self.offset < 0 or min(self.stride) < 0:
-            raise CheckpointFormatError(f"tensor of shape {self.size} runs past its storage ({base.size} elements)")
+        if not self.size:
+            return np.array(base[self.offset])
         item = base.itemsize
         view = np.lib.stride_tricks.as_strided(base[self.offset:], shape=self.size,
                                                strides=tuple(s * item for s in self.stride))
@@ -211,9 +257,14 @@ def _load_zip(path: Path) -> Any:
             if st.data is None and st.base is None:
                 key = str(pid[2])
                 try:
-                    raw = zf.read(f"{prefix}data/{key}")
+                    info = zf.getinfo(f"{prefix}data/{key}")
                 except KeyError as e:
                     raise CheckpointFormatError(f"storage {key} missing from the archive") from e
+                claim = max(info.file_size, st.numel * st.dtype.itemsize)
+                if claim > MAX_TENSOR_BYTES:  # checked before decompressing anything
+                    raise CheckpointFormatError(f"storage {key} claims {_size_text(claim)} (over the "
+                                                f"{_size_text(MAX_TENSOR_BYTES)} limit of one tensor)")
+                raw = zf.read(info)
                 dt = st.dtype.newbyteorder("<" if order == "little" else ">")
                 st.data = np.frombuffer(raw, dtype=dt).astype(st.dtype, copy=False)
             return st
@@ -223,6 +274,7 @@ def _load_zip(path: Path) -> Any:
 
 def _load_legacy(path: Path) -> Any:
     storages: dict[str, _Storage] = {}
+    size = path.stat().st_size
     with open(path, "rb") as f:
         def plain():
             return _RestrictedUnpickler(f, lambda pid: None).load()
@@ -243,7 +295,12 @@ def _load_legacy(path: Path) -> Any:
             if len(head) != 8:
                 raise CheckpointFormatError("file truncated in the tensor data")
             (numel,) = struct.unpack("<q" if little else ">q", head)
-            raw = f.read(numel * st.dtype.itemsize)
+            nbytes = numel * st.dtype.itemsize
+            if numel < 0 or nbytes > min(MAX_TENSOR_BYTES, size - f.tell()):  # before reading (allocating) it
+                raise CheckpointFormatError(f"storage {key} claims {_size_text(max(nbytes, 0))}, more than "
+                                            + ("the rest of the file holds" if nbytes <= MAX_TENSOR_BYTES else
+                                               f"the {_size_text(MAX_TENSOR_BYTES)} limit of one tensor"))
+            raw = f.read(nbytes)
             if len(raw) != numel * st.dtype.itemsize:
                 raise CheckpointFormatError("file truncated in the tensor data")
             dt = st.dtype.newbyteorder("<" if little else ">")
@@ -302,7 +359,13 @@ def load_state_dict(path: str | Path) -> dict[str, np.ndarray]:
                                     f"a state dict of tensors (nor a training dict with 'state_dict')")
     if all(k.startswith("module.") for k in tensors):
         tensors = {k[len("module."):]: v for k, v in tensors.items()}
-    return {k: v.numpy() for k, v in tensors.items()}
+    arrays = {}
+    for k, v in tensors.items():
+        try:
+            arrays[k] = v.numpy()
+        except CheckpointFormatError as e:
+            raise CheckpointFormatError(f"{path}: tensor {k} {e}") from None
+    return arrays
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -46,6 +46,10 @@ DEFAULT_WORKING_SIZE = "trained"
 """What the commands run at when `--working-size` is not given."""
 NATIVE_MAX_PIXELS = 1024 * 768
 """Largest working size (pixels) the native rule picks: bigger inputs are run at this many pixels (same aspect)."""
+ROW_BLOCK_PIXELS = 1 << 21
+"""Maps brought to a large input's resolution are computed this many output pixels at a time (bounded memory)."""
+REDUCED_READ_NOTICE = 8.0
+"""An input more than this many times its working size per side gets a notice (and is read at a reduced size)."""
 PAIR_KINDS = ("flow", "stereo")
 """What a pair is: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
 
@@ -142,8 +146,15 @@ def flow_to_input_resolution(px: np.ndarray, height: int, width: int) -> np.ndar
     H, W = px.shape[-3:-1]
     if (H, W) == (height, width):
         return np.asarray(px, np.float32)
-    out = _resize(px, resize_weights_align_corners(H, height), resize_weights_align_corners(W, width))
-    return out * np.array([width / W, height / H], np.float32)
+    wy, wx = resize_weights_align_corners(H, height), resize_weights_align_corners(W, width)
+    scale = np.array([width / W, height / H], np.float32)
+    out = np.empty(px.shape[:-3] + (height, width, px.shape[-1]), np.float32)
+    rows = max(1, ROW_BLOCK_PIXELS // max(1, width))  # output rows per block: no full-size temporaries
+    for r0 in range(0, height, rows):
+        block = out[..., r0:r0 + rows, :, :]
+        block[...] = _resize(px, wy[r0:r0 + rows], wx)
+        block *= scale
+    return out
 
 
 def disparity_to_input_resolution(disp_px: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -156,7 +167,9 @@ def disparity_to_input_resolution(disp_px: np.ndarray, height: int, width: int) 
     if (h, w) == (height, width):
         return np.asarray(disp_px, np.float32)
     frac = np.asarray(disp_px, np.float32) / np.float32(w)
-    return cv2.resize(frac, (width, height), interpolation=cv2.INTER_LINEAR) * np.float32(width)
+    out = cv2.resize(frac, (width, height), interpolation=cv2.INTER_LINEAR)
+    out *= np.float32(width)  # in place: one full-size array, not two
+    return out
 
 
 def map_to_input_resolution(task: str, working_map: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -186,6 +199,24 @@ def native_working_size(model_name: str, height: int, width: int,
         h, w = h * shrink, w * shrink
     size = (max(multiple, int(h) // multiple * multiple), max(multiple, int(w) // multiple * multiple))
     return models.suggest_working_size(model_name, *size) or size
+
+
+def input_size(image: Any) -> tuple[int, int]:
+    """(h, w) of the input an image stands for: its own shape, or for an image read at a reduced size
+    (`predict.ImageReader`) the size of the file (`full_size`): maps come back at that size."""
+    full = getattr(image, "full_size", None)
+    return tuple(int(v) for v in (full if full is not None else np.shape(image)[:2]))
+
+
+MAX_UPSAMPLING = 4
+"""Inputs are refused when the model's smallest working size is more than this many times larger per side."""
+
+
+def minimum_input_size(model_name: str) -> tuple[int, int]:
+    """The smallest input (h, w) the model is run on: its smallest working size / `MAX_UPSAMPLING` (rounded
+    up). A smaller input would only be blown up (a 1x1 image has no structure to match)."""
+    low = models.suggest_working_size(model_name, 1, 1) or (models.INPUT_MULTIPLE[model_name],) * 2
+    return tuple(-(-v // MAX_UPSAMPLING) for v in low)
 
 
 def _check_task(task: str) -> bool:
@@ -292,6 +323,7 @@ class Predictor:
         if len(images_a) != len(images_b) or len(images_a) == 0:
             raise ValueError(f"need the same, non-zero number of first and second images, got {len(images_a)} "
                              f"and {len(images_b)}")
+        full = input_size(images_a[0])
         a = [to_rgb_float(x, f"image_a[{i}]") for i, x in enumerate(images_a)]
         b = [to_rgb_float(x, f"image_b[{i}]") for i, x in enumerate(images_b)]
         size = a[0].shape[:2]
@@ -300,8 +332,12 @@ class Predictor:
                 which = f"image_a[{i}]" if i < len(a) else f"image_b[{i - len(a)}]"
                 raise ValueError(f"all images must have the same size: image_a[0] is {size[0]}x{size[1]}, "
                                  f"{which} is {img.shape[0]}x{img.shape[1]} (h x w)")
+        low = minimum_input_size(self.model_name)
+        if full[0] < low[0] or full[1] < low[1]:
+            raise ValueError(f"a {full[0]}x{full[1]} input is smaller than model {self.model_name} accepts (at least "
+                             f"{low[0]}x{low[1]} pixels, height x width)")
         pairs = np.concatenate([np.stack(a), np.stack(b)], axis=-1)
-        return resize_images(pairs, *self.working_size(*size)), size
+        return resize_images(pairs, *self.working_size(*full)), full
 
     def working_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b.
@@ -315,7 +351,7 @@ class Predictor:
         stereo = [_check_task(task) for task, _, _ in jobs]
         if not self.separate:
             stereo = [False] * len(jobs)  # one shared network: no need to split (and pad) by task
-        sizes = [self.working_size(*np.shape(a)[:2]) for _, a, _ in jobs]
+        sizes = [self.working_size(*input_size(a)) for _, a, _ in jobs]
         for kind in dict.fromkeys(zip(stereo, sizes)):
             idx = [i for i, key in enumerate(zip(stereo, sizes)) if key == kind]
             size = batch or len(idx)
@@ -333,7 +369,7 @@ class Predictor:
         for "flow" jobs, disparity `(h, w)` for "stereo" jobs (see the module docstring); `batch` as in
         `working_maps`."""
         maps = self.working_maps(jobs, batch)
-        return [map_to_input_resolution(task, m, *np.shape(a)[:2]) for (task, a, _), m in zip(jobs, maps)]
+        return [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
 
     def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow") -> np.ndarray:
         """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> predictions at the input
@@ -387,6 +423,9 @@ def resize_notice(predictor: Predictor, height: int, width: int, factor: float =
         return None
     native = native_working_size(predictor.model_name, height, width, predictor.max_pixels)
     hint = "" if (wh, ww) == native else f"; --working-size native runs it at {native[0]}x{native[1]}"
+    if shrink > REDUCED_READ_NOTICE:
+        hint += ("; it is decoded at a reduced size to save memory, and the maps are written at the input's "
+                 f"{height}x{width}")
     return f"note: the {height}x{width} input runs at {wh}x{ww} ({shrink:.1f}x smaller per side){hint}"
 
 
@@ -429,4 +468,5 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",
            "to_rgb_float", "resize_images",
-           "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "PAIR_KINDS"]
+           "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "PAIR_KINDS",
+           "input_size", "minimum_input_size"]

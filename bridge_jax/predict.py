@@ -58,7 +58,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bridge_jax import cli, files, flowio, inference, metrics, visualize
-from bridge_jax.data import kitti, videos
+from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
 
@@ -127,12 +127,57 @@ def _path_inputs(lefts: Sequence[str], rights: Optional[Sequence[str]]) -> Calla
     return lambda i: {"left": lefts[i], "right": rights[i]}
 
 
-def read_image(path: str) -> np.ndarray:
-    """uint8 RGB ``(H, W, 3)``; grayscale is replicated. Raises PredictError naming the path."""
+def read_image(path: str, size_for: Optional[Callable[[int, int], tuple]] = None) -> np.ndarray:
+    """uint8 RGB ``(H, W, 3)``; grayscale is replicated. Raises PredictError naming the path.
+
+    `size_for`: (h, w) of an input -> the working size it runs at (`Predictor.working_size`). When that is at
+    least 4x smaller per side, the file is decoded at 1/2, 1/4 or 1/8 of its size (OpenCV's
+    IMREAD_REDUCED_COLOR_*; a JPEG is then never decoded in full), keeping at least twice the working size per
+    side, and the image carries the file's size as `full_size` (`inference.input_size`): the maps are
+    still brought to it."""
     try:
+        if size_for is not None:
+            h, w = folders.image_size(path)
+            wh, ww = size_for(h, w)
+            factor = next((f for f in (8, 4, 2) if h / f >= 2 * wh and w / f >= 2 * ww), 1)
+            if factor > 1:
+                data = kitti.read_image_bytes(path)
+                kitti.check_image_bytes(data, path)
+                flag = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
+                img = cv2.imdecode(np.frombuffer(data, np.uint8), flag[factor])
+                del data
+                if img is None or img.ndim != 3 or img.shape[0] == 0:
+                    raise kitti.CorruptImageError(path, "not a decodable image")
+                return ReducedImage.of(np.ascontiguousarray(img[..., ::-1]), (h, w))
         return kitti.read_image(path)
     except ValueError as e:  # missing, truncated or undecodable
         raise PredictError(str(e)) from None
+
+
+class ReducedImage(np.ndarray):
+    """An input image decoded at a reduced size; `full_size` = (h, w) of the file (`read_image`)."""
+
+    full_size: Optional[tuple] = None
+
+    @classmethod
+    def of(cls, image: np.ndarray, full_size: tuple) -> "ReducedImage":
+        out = image.view(cls)
+        out.full_size = tuple(full_size)
+        return out
+
+    def __array_finalize__(self, obj):
+        self.full_size = getattr(obj, "full_size", None) if obj is not None and obj.shape == self.shape else None
+
+
+class ImageReader:
+    """How the image streams read their files: in full until `predict_source` sets `size_for` to the
+    predictor's working size rule, then at a reduced size where that is much smaller (`read_image`)."""
+
+    def __init__(self):
+        self.size_for: Optional[Callable[[int, int], tuple]] = None
+
+    def __call__(self, path: str) -> np.ndarray:
+        return read_image(path, self.size_for)
 
 
 def _is_image(path: str) -> bool:
@@ -149,21 +194,38 @@ def _list_images(folder: str) -> list[str]:
 
 
 def _checked_size(img: np.ndarray, size: Optional[tuple], path: str) -> tuple:
-    if size is not None and img.shape[:2] != size:
-        raise PredictError(f"{path} is {img.shape[1]}x{img.shape[0]}, but the first frame is {size[1]}x{size[0]}")
-    return img.shape[:2]
+    h, w = inference.input_size(img)
+    if size is not None and (h, w) != size:
+        raise PredictError(f"{path} is {w}x{h}, but the first frame is {size[1]}x{size[0]}")
+    return h, w
 
 
-def _image_stream(lefts: list[str], rights: Optional[list[str]]):
-    size = None
-    for i, lp in enumerate(lefts):
-        left = read_image(lp)
-        size = _checked_size(left, size, lp)
-        right = None
-        if rights is not None:
-            right = read_image(rights[i])
-            _checked_size(right, size, rights[i])
-        yield left, right
+class _ImageStream:
+    """The (left, right-or-None) frames of image files, read by `reader` (set up by `predict_source`)."""
+
+    def __init__(self, lefts: list[str], rights: Optional[list[str]]):
+        self.reader = ImageReader()
+        self._frames = self._read(lefts, rights)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._frames)
+
+    def _read(self, lefts, rights):
+        size = None
+        for i, lp in enumerate(lefts):
+            left = self.reader(lp)
+            size = _checked_size(left, size, lp)
+            right = None
+            if rights is not None:
+                right = self.reader(rights[i])
+                _checked_size(right, size, rights[i])
+            yield left, right
+
+
+_image_stream = _ImageStream
 
 
 def _video_stream(paths: Sequence[str], sbs: bool):
@@ -285,6 +347,31 @@ class Runner:
 # Writing
 
 
+PERCENTILE_SAMPLE = 1 << 22
+"""Colour scales (99th percentiles) of maps with more pixels are taken from an evenly strided sample of them."""
+
+
+def _sample(values: np.ndarray) -> np.ndarray:
+    """`values` (first axis: pixels), or an evenly strided sample of about `PERCENTILE_SAMPLE` of them."""
+    step = -(-len(values) // PERCENTILE_SAMPLE)
+    return values[::step] if step > 1 else values
+
+
+def _by_rows(fn: Callable, *maps: np.ndarray) -> np.ndarray:
+    """`fn(*maps)` for a pixelwise `fn` (colour coding, PNG encoding) computed `inference.ROW_BLOCK_PIXELS` pixels
+    at a time, so a large map never has full-size float64 temporaries."""
+    h, w = maps[0].shape[:2]
+    rows = max(1, inference.ROW_BLOCK_PIXELS // max(1, w))
+    if h <= rows:
+        return fn(*maps)
+    first = fn(*(m[:rows] for m in maps))
+    out = np.empty((h,) + first.shape[1:], first.dtype)
+    out[:rows] = first
+    for r0 in range(rows, h, rows):
+        out[r0:r0 + rows] = fn(*(m[r0:r0 + rows] for m in maps))
+    return out
+
+
 class Writer:
     """Writes the per-frame outputs into ``root`` (a temporary folder), with colour scales fixed on first use."""
 
@@ -311,14 +398,16 @@ class Writer:
 
     def flow(self, index: int, flow: np.ndarray, sub: str = "flow") -> np.ndarray:
         if self.max_flow is None:
-            norms = np.sqrt((flow.astype(np.float64) ** 2).sum(-1))
-            self.max_flow = max(1.0, float(np.percentile(norms, 99)))
-        color = visualize.flow_to_color(flow, max_flow=self.max_flow)
+            sample = _sample(flow.reshape(-1, 2)).astype(np.float64)
+            self.max_flow = max(1.0, float(np.percentile(np.sqrt((sample ** 2).sum(-1)), 99)))
+        if "png" in self.raw:  # before the colour picture: the two large arrays are never held together
+            valid = np.broadcast_to(True, flow.shape[:2])
+            files.write_bytes(self._path(f"{sub}_kitti", index, ".png"),
+                              kitti.encode_png16(_by_rows(kitti.flow_png_array, flow, valid), "flow"))
+        color = _by_rows(lambda f: visualize.flow_to_color(f, max_flow=self.max_flow), flow)
         visualize.write_image(self._path(sub, index, ".png"), color)
-        if "png" in self.raw:
-            kitti.write_flow_png(self._path(f"{sub}_kitti", index, ".png"), flow, np.ones(flow.shape[:2], bool))
         if "npy" in self.raw:
-            np.save(self._path(f"{sub}_npy", index, ".npy"), flow.astype(np.float32))
+            np.save(self._path(f"{sub}_npy", index, ".npy"), np.asarray(flow, np.float32))
         if "flo" in self.raw:
             flowio.write_flo(self._path(f"{sub}_flo", index, ".flo"), flow)
         self.counts[sub] = self.counts.get(sub, 0) + 1
@@ -326,24 +415,30 @@ class Writer:
 
     def disparity(self, index: int, disp: np.ndarray, sub: str = "disparity") -> np.ndarray:
         if self.max_disp is None:
-            self.max_disp = max(1.0, 1.1 * float(np.percentile(disp, 99)))
-        color = visualize.disparity_to_color(disp, vmax=self.max_disp)
+            self.max_disp = max(1.0, 1.1 * float(np.percentile(_sample(disp.reshape(-1)), 99)))
+        color = _by_rows(lambda d: visualize.disparity_to_color(d, vmax=self.max_disp), disp)
         visualize.write_image(self._path(sub, index, ".png"), color)
         if "png" in self.raw:
-            kitti.write_disp_png(self._path(f"{sub}_kitti", index, ".png"), np.clip(disp, 1 / 256, 255.0),
-                                    np.ones(disp.shape, bool))
+            valid = np.broadcast_to(True, disp.shape)
+            files.write_bytes(self._path(f"{sub}_kitti", index, ".png"), kitti.encode_png16(
+                _by_rows(lambda d, v: kitti.disp_png_array(np.clip(d, 1 / 256, 255.0), v), disp, valid), "disparity"))
         if "npy" in self.raw:
-            np.save(self._path(f"{sub}_npy", index, ".npy"), disp.astype(np.float32))
+            np.save(self._path(f"{sub}_npy", index, ".npy"), np.asarray(disp, np.float32))
         if "pfm" in self.raw:
             flowio.write_pfm(self._path(f"{sub}_pfm", index, ".pfm"), disp)
         self.counts[sub] = self.counts.get(sub, 0) + 1
         if self.focal and self.baseline and sub == "disparity":
-            depth = metrics.disparity_to_depth(disp, self.focal, self.baseline)
-            visualize.write_image(self._path("depth", index, ".png"), visualize.depth_to_color(depth))
-            if "npy" in self.raw:
-                np.save(self._path("depth_npy", index, ".npy"), depth.astype(np.float32))
-            if "pfm" in self.raw:
-                flowio.write_pfm(self._path("depth_pfm", index, ".pfm"), depth)
+            def depth(d):
+                return metrics.disparity_to_depth(d, self.focal, self.baseline)
+
+            visualize.write_image(self._path("depth", index, ".png"),
+                                  _by_rows(lambda d: visualize.depth_to_color(depth(d)), disp))
+            if "npy" in self.raw or "pfm" in self.raw:
+                full = depth(disp)
+                if "npy" in self.raw:
+                    np.save(self._path("depth_npy", index, ".npy"), full.astype(np.float32, copy=False))
+                if "pfm" in self.raw:
+                    flowio.write_pfm(self._path("depth_pfm", index, ".pfm"), full)
             self.counts["depth"] = self.counts.get("depth", 0) + 1
         return color
 
@@ -409,11 +504,16 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
             if write_video:
                 _flush_video(writer, pending, source.stereo, final=False)
 
+        reader = getattr(source.frames, "reader", None)
+        if reader is not None and hasattr(predictor, "working_size"):
+            reader.size_for = predictor.working_size  # large inputs are decoded at a reduced size
         try:
             prev = None
             for index, (left, right) in enumerate(source.frames):
+                if hasattr(predictor, "model_name"):
+                    _check_minimum(predictor.model_name, left, source, index)
                 if index == 0 and hasattr(predictor, "working_size"):
-                    note = inference.resize_notice(predictor, *np.shape(left)[:2])
+                    note = inference.resize_notice(predictor, *inference.input_size(left))
                     if note:
                         print(note, file=sys.stderr)
                 if write_video:
@@ -447,6 +547,18 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
         with open(os.path.join(tmp, "predict.json"), "w") as f:
             json.dump(desc, f, indent=1)
     return desc
+
+
+def _check_minimum(model_name: str, image: np.ndarray, source: Source, index: int) -> None:
+    """PredictError naming the input when frame `index` is below the model's minimum
+    (`inference.minimum_input_size`)."""
+    h, w = inference.input_size(image)
+    low = inference.minimum_input_size(model_name)
+    if h < low[0] or w < low[1]:
+        inputs = source.inputs(index) if source.inputs is not None else {}
+        where = inputs.get("left") or inputs.get("image") or inputs.get("video") or f"frame {index}"
+        raise PredictError(f"{where}: a {h}x{w} input is smaller than model {model_name} accepts (at least "
+                           f"{low[0]}x{low[1]} pixels, height x width)")
 
 
 def _mapping(source: Source, written: dict[int, set[str]]) -> list[dict]:

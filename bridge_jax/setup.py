@@ -66,6 +66,48 @@ def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+# The integer fields that count or space something (steps, intervals, sizes, batches, workers), by dotted config
+# key: (the smallest allowed value, {other allowed value: its meaning}). `check_counts` applies them to the typed
+# record of every section (`SECTIONS`), so every refusal reads the same; a test checks that each integer field of
+# those records has a rule here or is listed in NOT_COUNTS.
+COUNT_RULES: dict[str, tuple[int, dict[int, str]]] = {
+    "height": (1, {}), "width": (1, {}), "global_batch": (1, {}),
+    "micro_batch": (0, {-1: "auto"}), "num_devices": (1, {-1: "all devices"}),
+    "loss.num_scales": (1, {}), "loss.occlusion_start_step": (0, {}), "loss.self_supervision_start_step": (0, {}),
+    "loss.self_supervision_crop": (0, {}),
+    "data.num_workers": (0, {}), "data.prefetch": (0, {}), "data.read_threads": (1, {}),
+    "data.worker_buffer_size": (1, {}), "data.max_skip": (0, {}), "data.synthetic_num": (1, {}),
+    "data.num_epochs": (1, {}),  # or None (forever)
+    "loop.num_train_steps": (1, {-1: "derive from the data"}), "loop.num_epochs": (1, {}),
+    "loop.steps_per_epoch": (1, {-1: "derive from the data"}), "loop.log_every": (1, {}),
+    "loop.checkpoint_every": (1, {}), "loop.eval_every": (0, {-1: "never"}), "loop.image_every": (0, {-1: "off"}),
+    "loop.keep_checkpoints": (1, {}), "loop.max_nonfinite_in_row": (1, {}),
+    "eval.num_samples": (0, {}), "eval.batch": (1, {}),
+    "distributed.num_processes": (0, {}), "distributed.process_id": (0, {-1: "auto-detect"}),
+}
+# Integer fields that are not counts (any integer is a valid seed; smoothness_order is a choice of two).
+NOT_COUNTS = ("seed", "eval.seed", "loss.smoothness_order")
+
+
+def count_rule_text(key: str) -> str:
+    """What `COUNT_RULES[key]` allows, in words: "an integer >= 1, or -1 (derive from the data)"."""
+    low, special = COUNT_RULES[key]
+    return f"an integer >= {low}" + "".join(f", or {v} ({meaning})" for v, meaning in special.items())
+
+
+def check_counts(record, section: str) -> None:
+    """Refuses (ValueError "config.<key>=<value>: must be ...") the first count or interval field of `record` (a
+    section's dataclass) outside its `COUNT_RULES` range; None stands for "unset" and passes."""
+    for f in dataclasses.fields(record):
+        key = f"{section}.{f.name}" if section else f.name
+        value = getattr(record, f.name)
+        if key not in COUNT_RULES or value is None:
+            continue
+        low, special = COUNT_RULES[key]
+        if not _is_int(value) or not (value >= low or value in special):
+            raise ValueError(f"config.{key}={value!r}: must be {count_rule_text(key)}")
+
+
 @dataclasses.dataclass(frozen=True)
 class RunOptions:
     """The top-level fields of a training config (beside the optimizer's, `train_step.OptimizerConfig`)."""
@@ -119,11 +161,6 @@ class LoopConfig:
                 _check(isinstance(value, bool), "loop", f.name, "True or False", value)
             else:
                 _check(_is_int(value), "loop", f.name, "an integer", value)
-        for name in ("num_train_steps", "steps_per_epoch"):
-            _check(getattr(self, name) > 0 or getattr(self, name) == -1, "loop", name, "positive (or -1 = derived)",
-                   getattr(self, name))
-        for name in ("num_epochs", "log_every", "checkpoint_every", "keep_checkpoints", "max_nonfinite_in_row"):
-            _check(getattr(self, name) > 0, "loop", name, "positive", getattr(self, name))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,7 +251,9 @@ def _typed(cls, values: dict, name: str):
     if unknown:
         raise ConfigError(f"{where}unknown field(s) {unknown}; known fields: {sorted(known)}")
     try:
-        return cls(**values)
+        record = cls(**values)
+        check_counts(record, name)
+        return record
     except (TypeError, ValueError) as e:
         raise ConfigError(str(e) if str(e).startswith("config.") else f"{where}{e}") from e
 
@@ -299,8 +338,9 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     typed = {cls: _typed(cls, values[cls], name) for name, cls in SECTIONS if cls is not losses.LossConfig}
     try:
         typed[losses.LossConfig] = losses.LossConfig.from_dict(values[losses.LossConfig])
+        check_counts(typed[losses.LossConfig], "loss")
     except (ValueError, TypeError) as e:
-        raise ConfigError(f"config.loss: {e}") from e
+        raise ConfigError(str(e) if str(e).startswith("config.") else f"config.loss: {e}") from e
     opts, loss_cfg = typed[RunOptions], typed[losses.LossConfig]
     try:
         model_cfg = models.model_config(model_values)

@@ -27,11 +27,15 @@ Workdir layout (`bridge_jax.workdir`):
     metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
     tensorboard/                    tensorboardX event files (scalars, images)
     images/                         the same pictures as PNG files
-    status.json                     {"status": "running" | "finished" | "interrupted" | "failed", "step": ...}
+    status.json                     running | finished | interrupted | aborted | failed (with the reason), the
+                                    step, steps/s, last checkpoint and a heartbeat, rewritten at every log
+                                    interval; `bridge-train --status WORKDIR` prints it and says whether the
+                                    run is stale (no heartbeat for 3 periods: its process is gone)
 
-Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume; a second
-Ctrl-C exits at once without saving); 2 bad input or environment (one line naming the option or file;
-`--debug` or BRIDGE_JAX_DEBUG=1 shows the traceback); 1 training diverged (too many non-finite steps in a row).
+Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
+for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
+full disk included (one line naming the option, file or folder; `--debug` or BRIDGE_JAX_DEBUG=1 shows the
+traceback); 1 training diverged (too many non-finite steps in a row).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bridge_jax import checkpointing, cli, configs, files, inference, models, network, setup, train_step
-from bridge_jax import zoo
+from bridge_jax import workdir as workdir_mod, zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
 from bridge_jax.eval.baselines import zero_method
@@ -59,7 +63,7 @@ from bridge_jax.eval.datasets import Frame, synthetic_frames
 from bridge_jax.eval.methods import ModelMethod
 from bridge_jax.eval.scoring import score_methods
 from bridge_jax.setup import ConfigError  # noqa: F401  (re-exported: the trainer's user-error type)
-from bridge_jax.workdir import MetricsLogger, last_validation, scalar, write_status
+from bridge_jax.workdir import MetricsLogger, RunStatus, last_validation, scalar
 
 
 class TrainingDiverged(RuntimeError):
@@ -216,9 +220,9 @@ class _NonFiniteGuard:
         self.in_row += 1
         self.total += 1
         self.logger.scalars(step, {"nonfinite_total": self.total, "loss": metrics["loss"]}, kind="skip")
-        if self.is_main:
-            print(f"step {step}: non-finite loss/gradient, update skipped ({self.in_row} in a row, {self.total} in "
-                  "total)", file=sys.stderr, flush=True)
+        if self.is_main and self.in_row == 1:  # the first of a row; the rest are counted (metrics.jsonl, the error)
+            print(f"step {step}: non-finite loss/gradient, update skipped ({self.total} in total; the run stops after "
+                  f"{self.max_in_row} in a row)", file=sys.stderr, flush=True)
         if self.in_row >= self.max_in_row:
             self.ckpt.wait()
             last = self.ckpt.latest_step()
@@ -260,36 +264,88 @@ def _restore(ckpt: checkpointing.TrainCheckpointer, state, data_iter, is_main: b
         data_iter.set_state(found.data_state)
     start_step = int(jax.device_get(found.state["step"]))
     if is_main:
-        skipped = "".join(f"; skipped broken step {s} ({why})" for s, why in found.broken)
+        skipped = "".join(f"; skipped broken step {s} (see the warning)" for s, _ in found.broken)
         print(f"Resuming from {ckpt.directory}/{found.step} (step {start_step}){skipped}.", flush=True)
     return found.state, start_step
 
 
 class _StopSignals:
-    """SIGTERM / SIGINT set `received` instead of killing the run (the loop then saves and exits). The first
-    signal also restores the operating system's default action, so a second one ends the process at once, even
-    inside a long compilation or validation (nothing more is saved; the previous checkpoint stays)."""
+    """SIGTERM / SIGINT set `received` instead of killing the run (the loop then saves and exits). A second signal
+    ends the process at once, even inside a long compilation or validation (nothing more is saved; the previous
+    checkpoint stays): `on_abort(signum)` runs first (the trainer writes status.json "aborted"), then the
+    process exits with 128 + signum (130 for Ctrl-C). The main thread runs Python's signal handlers only between
+    bytecodes, so a watcher thread reads the signal numbers from a wake-up pipe (`signal.set_wakeup_fd`) and
+    acts on the second one while the main thread is busy in XLA."""
 
-    def __init__(self, announce: bool = True):
+    def __init__(self, announce: bool = True, on_abort=None):
         self.received = None
         self.announce = announce
+        self.on_abort = on_abort
         self._old = {}
+        self._pipe = None
+        self._old_fd = -1
+        self._count = 0
+        self._lock = threading.Lock()
 
     def __enter__(self):
         if sys.platform != "win32" and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
                 self._old[sig] = signal.signal(sig, self._on_signal)
+            r, w = os.pipe()
+            os.set_blocking(w, False)
+            self._old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+            self._pipe = (r, w)
+            threading.Thread(target=self._watch, args=(r,), name="bridge_jax-signals", daemon=True).start()
         return self
 
+    def _watch(self, fd: int) -> None:
+        while True:
+            try:
+                data = os.read(fd, 64)
+            except OSError:
+                return
+            if not data or 0 in data:  # 0: __exit__'s "stop" byte
+                os.close(fd)
+                return
+            for signum in data:
+                if signum in (signal.SIGTERM, signal.SIGINT):
+                    self._count_signal(signum)
+
+    def _count_signal(self, signum: int) -> None:
+        """Counts each signal once (the handler and the watcher both see it); the second one aborts."""
+        with self._lock:
+            self._count += 1
+            second = self._count >= 2
+        if second:
+            self._abort(signum)
+
     def _on_signal(self, signum, frame):  # noqa: ARG002
+        if self.received is not None:
+            if self._pipe is None:  # no watcher (e.g. a test's subclass): the handler counts
+                self._abort(signum)
+            return
         self.received = signum
-        for sig in self._old:
-            signal.signal(sig, signal.SIG_DFL)
+        if self._pipe is None:
+            self._count = 1
         if self.announce:
             print(f"\nReceived signal {signum}: stopping after this step and saving a checkpoint (send it again "
                   "to exit now without saving).", file=sys.stderr, flush=True)
 
+    def _abort(self, signum: int) -> None:
+        try:
+            if self.on_abort is not None:
+                self.on_abort(signum)
+        finally:
+            os._exit(128 + int(signum))
+
     def __exit__(self, *exc):
+        if self._pipe is not None:
+            signal.set_wakeup_fd(self._old_fd)
+            r, w = self._pipe
+            os.set_blocking(w, True)
+            os.write(w, b"\0")  # stops the watcher (it closes the read end)
+            self._pipe = None
+            os.close(w)
         for sig, handler in self._old.items():
             signal.signal(sig, handler)
         return False
@@ -352,99 +408,118 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
 
     ##### Workdir: config, checkpoints, resume ##############################################################
     os.makedirs(workdir, exist_ok=True)
-    if is_main:
-        files.write_json(os.path.join(workdir, checkpointing.CONFIG_JSON), run.config_json)
-        files.write_json(os.path.join(workdir, checkpointing.MODEL_JSON), run.model.model_json())
-    loop = run.loop
-    ckpt = checkpointing.TrainCheckpointer(workdir, save_every=loop.checkpoint_every, keep=loop.keep_checkpoints,
-                                           async_save=loop.async_checkpoints)
-    data_iter = iter(dataset)
-    state, start_step = _restore(ckpt, state, data_iter, is_main)
-    if is_main:
-        print(_startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
-        write_status(workdir, "running", start_step)
+    run_status = RunStatus(workdir, is_main, step=0, num_steps=num_steps)
+    try:
+        if is_main:
+            files.write_json(os.path.join(workdir, checkpointing.CONFIG_JSON), run.config_json)
+            files.write_json(os.path.join(workdir, checkpointing.MODEL_JSON), run.model.model_json())
+        loop = run.loop
+        ckpt = checkpointing.TrainCheckpointer(workdir, save_every=loop.checkpoint_every, keep=loop.keep_checkpoints,
+                                               async_save=loop.async_checkpoints)
+        data_iter = iter(dataset)
+        state, start_step = _restore(ckpt, state, data_iter, is_main)
+        if is_main:
+            print(_startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
+        run_status.update(step=start_step, start_step=start_step, last_checkpoint=ckpt.latest_step())
 
-    ##### Update step and validation ###########################################################################
-    step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
-    predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
-                                    dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
-                                    mesh=mesh)
-    logger = MetricsLogger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
-    global_shape = (run.global_batch, 4, run.height, run.width, 3)
+        ##### Update step and validation ###########################################################################
+        step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
+        predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
+                                        dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
+                                        mesh=mesh)
+        logger = MetricsLogger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
+        global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
-    def run_validation(step, log_metrics=True, first_only=False):
-        res, panel = _validate_data(predictor, state["params"], val_data, max(1, run.eval.batch), first_only)
-        if log_metrics:
-            logger.scalars(step, res, kind="val")
-            if is_main:
-                tqdm.write(describe_validation(step, res), file=sys.stdout)
-        if panel is not None and is_main:
-            logger.image(step, "val/prediction", panel)
-        return res
-
-    ##### Train loop ###########################################################################################
-    step, last_metrics, val, interrupted = start_step, {}, {}, False
-    guard, meter = _NonFiniteGuard(loop.max_nonfinite_in_row, logger, ckpt, is_main), _Throughput(run.global_batch)
-    finished_before = resuming and start_step >= num_steps
-    status = "failed"
-    with _StopSignals(announce=is_main) as stop, tqdm(total=num_steps, initial=start_step, unit="step",
-                                                      dynamic_ncols=True, file=sys.stderr,
-                                                      disable=not (is_main and loop.progress_bar)) as bar:
-        try:
-            while step < num_steps:
-                if stop.received is not None:
-                    interrupted = True
-                    break
-                local = np.asarray(next(data_iter)["cycle"], np.float32)
-                state, metrics = step_fn(state, _global_array(batch_sharding, local, global_shape))
-                metrics = jax.device_get(metrics)
-                if guard.skipped(step, metrics):
-                    continue
-                step += 1
-                meter.step()
-                last_metrics = metrics
-                ckpt.save(step, state, data_iter.get_state())
-
-                if step % loop.log_every == 0 or step == num_steps:
-                    extra = {**meter.window(), "nonfinite_total": guard.total, "epoch": step / steps_per_epoch}
-                    logger.scalars(step, {**{k: v for k, v in metrics.items() if k != "nonfinite"}, **extra})
-                    bar.set_postfix(loss=f"{scalar(metrics['loss']):.4f}", cycles_s=f"{extra['cycles_per_s']:.2f}",
-                                    refresh=False)
-                bar.update(1)
-                if stop.received is not None:  # no long phase (validation) once asked to stop
-                    continue
-                if val_data and loop.eval_every > 0 and step % loop.eval_every == 0 and step < num_steps:
-                    val = run_validation(step)
-                elif is_main and loop.image_every > 0 and step % loop.image_every == 0 and val_data:
-                    run_validation(step, log_metrics=False, first_only=True)
-
-            if interrupted:
+        def run_validation(step, log_metrics=True, first_only=False):
+            res, panel = _validate_data(predictor, state["params"], val_data, max(1, run.eval.batch), first_only)
+            if log_metrics:
+                logger.scalars(step, res, kind="val")
                 if is_main:
-                    print(f"\nSaving a checkpoint at step {step} and exiting.", file=sys.stderr, flush=True)
-            elif finished_before:
-                val = last_validation(workdir)
-            elif val_data:
-                val = run_validation(step)
-            skips = dataset.skips.report()
-            if is_main and skips.get("cycles"):
-                logger.record(step, "data_skips", skips)
-                print(f"data: {skips['cycles']} cycles skipped (unreadable or inconsistent files), e.g. "
-                      f"{'; '.join(f'{k}: {v}' for k, v in list(skips.get('causes', {}).items())[:3])} "
-                      "(all of them in metrics.jsonl)", file=sys.stderr, flush=True)
-            ckpt.save(step, state, data_iter.get_state(), force=True)
-            ckpt.wait()
-            status = "interrupted" if interrupted else "finished"
-        finally:
-            ckpt.close()
-            logger.close()
-            if is_main:
-                write_status(workdir, status, step, **({"signal": int(stop.received)} if interrupted else {}))
+                    tqdm.write(describe_validation(step, res), file=sys.stdout)
+            if panel is not None and is_main:
+                logger.image(step, "val/prediction", panel)
+            return res
 
-    latest = ckpt.latest_step()
-    return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
-            "nonfinite_total": guard.total, "last_metrics": {k: scalar(v) for k, v in last_metrics.items()},
-            "validation": val, "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
-            "skipped_data": dataset.skips.report(), "state": state}
+        ##### Train loop ###########################################################################################
+        step, last_metrics, val, interrupted = start_step, {}, {}, False
+        guard, meter = _NonFiniteGuard(loop.max_nonfinite_in_row, logger, ckpt, is_main), _Throughput(run.global_batch)
+        finished_before = resuming and start_step >= num_steps
+        status = "failed"
+        def abort(signum):  # a second signal: the process exits at once (see _StopSignals)
+            run_status.end("aborted", signal=int(signum), reason=f"signal {int(signum)} received twice: exited at once "
+                           "without saving; run the same command to resume from the last checkpoint")
+
+        with _StopSignals(announce=is_main, on_abort=abort) as stop, \
+                tqdm(total=num_steps, initial=start_step, unit="step", dynamic_ncols=True, file=sys.stderr,
+                     disable=not (is_main and loop.progress_bar)) as bar:
+            try:
+                while step < num_steps:
+                    if stop.received is not None:
+                        interrupted = True
+                        break
+                    local = np.asarray(next(data_iter)["cycle"], np.float32)
+                    state, metrics = step_fn(state, _global_array(batch_sharding, local, global_shape))
+                    metrics = jax.device_get(metrics)
+                    if guard.skipped(step, metrics):
+                        continue
+                    step += 1
+                    run_status.progress(step)
+                    meter.step()
+                    last_metrics = metrics
+                    ckpt.save(step, state, data_iter.get_state())
+
+                    if step % loop.log_every == 0 or step == num_steps:
+                        extra = {**meter.window(), "nonfinite_total": guard.total, "epoch": step / steps_per_epoch}
+                        logger.scalars(step, {**{k: v for k, v in metrics.items() if k != "nonfinite"}, **extra})
+                        run_status.update(step=step, steps_per_s=1.0 / max(extra["step_time_s"], 1e-9),
+                                          last_checkpoint=ckpt.latest_step())
+                        bar.set_postfix(loss=f"{scalar(metrics['loss']):.4f}", cycles_s=f"{extra['cycles_per_s']:.2f}",
+                                        refresh=False)
+                    bar.update(1)
+                    if stop.received is not None:  # no long phase (validation) once asked to stop
+                        continue
+                    if val_data and loop.eval_every > 0 and step % loop.eval_every == 0 and step < num_steps:
+                        val = run_validation(step)
+                    elif is_main and loop.image_every > 0 and step % loop.image_every == 0 and val_data:
+                        run_validation(step, log_metrics=False, first_only=True)
+
+                if interrupted:
+                    if is_main:
+                        print(f"\nSaving a checkpoint at step {step} and exiting.", file=sys.stderr, flush=True)
+                elif finished_before:
+                    val = last_validation(workdir)
+                elif val_data:
+                    val = run_validation(step)
+                skips = dataset.skips.report()
+                if is_main and skips.get("cycles"):
+                    logger.record(step, "data_skips", skips)
+                    print(f"data: {skips['cycles']} cycles skipped (unreadable or inconsistent files), e.g. "
+                          f"{'; '.join(f'{k}: {v}' for k, v in list(skips.get('causes', {}).items())[:3])} "
+                          "(all of them in metrics.jsonl)", file=sys.stderr, flush=True)
+                ckpt.save(step, state, data_iter.get_state(), force=True)
+                ckpt.wait()
+                status = "interrupted" if interrupted else "finished"
+            finally:
+                try:
+                    ckpt.close()
+                finally:
+                    logger.close()
+            run_status.end(status, step=step, last_checkpoint=ckpt.latest_step(),
+                           **({"signal": int(stop.received)} if interrupted else {}))
+
+        latest = ckpt.latest_step()
+        return {"start_step": start_step, "workdir": workdir, "step": step, "interrupted": interrupted,
+                "nonfinite_total": guard.total, "last_metrics": {k: scalar(v) for k, v in last_metrics.items()},
+                "validation": val,
+                "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
+                "skipped_data": dataset.skips.report(), "state": state}
+    except BaseException as e:  # every way out that is not a return: status.json says what happened
+        if isinstance(e, (KeyboardInterrupt, SystemExit)):
+            run_status.end("aborted", reason=f"{type(e).__name__}: exited without saving")
+        else:
+            text = str(e).strip()
+            run_status.end("failed", reason=text.splitlines()[0] if text else type(e).__name__)
+        raise
 
 
 def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:
@@ -510,6 +585,12 @@ def build_parser():
     p.add_argument("--workdir", help="folder for checkpoints, logs and metrics (required; resumed if it has any)")
     p.add_argument("--list-config", nargs="?", const="default", default=None, metavar="NAME",
                    help="print every field of config NAME (default: default) with its value and meaning, then exit")
+    p.add_argument("--status", metavar="WORKDIR", default=None,
+                   help="print the state of the run in WORKDIR (its status.json: step, speed, last checkpoint, "
+                        "heartbeat) and whether it is stale, i.e. its process is gone: a 'running' run without a "
+                        f"heartbeat for {workdir_mod.STALE_BEATS} heartbeat periods (a heartbeat comes at every log "
+                        f"interval and at least every {workdir_mod.HEARTBEAT_S:g} s); exit code 0, 1 when stale or "
+                        "failed, 2 without a status file")
     p.add_argument("--verbosity", default="warning", choices=("debug", "info", "warning", "error"),
                    help="log level of the libraries (absl, orbax, grain); info shows orbax's checkpoint messages")
     cli.add_debug_flag(p)
@@ -580,10 +661,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except ConfigError as e:
             return cli.report_error(e, code=EXIT_BAD_INPUT, debug=args.debug)
         return EXIT_FINISHED
+    if args.status is not None:
+        try:
+            line, stale = workdir_mod.describe_status(args.status)
+        except ValueError as e:
+            return cli.report_error(e, code=EXIT_BAD_INPUT, debug=args.debug)
+        print(line)
+        return 1 if stale or line.split(", ", 1)[0].endswith((": failed", ": aborted")) else 0
     if not args.config or not args.workdir:
         parser.error("the following arguments are required: " + ", ".join(
             f"--{n}" for n in ("config", "workdir") if not getattr(args, n)))
     _set_verbosity(args.verbosity)
+    if not args.debug:  # a failed checkpoint write is one line, not orbax's and asyncio's tracebacks too
+        checkpointing.quiet_save_failure_noise()
     try:
         config = load_config(args.config, items)
         result = train_and_evaluate(config, args.workdir, enable_cache=True, config_name=args.config)

@@ -6,10 +6,19 @@
       metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
       tensorboard/                    tensorboardX event files (scalars, images)
       images/                         the same pictures as PNG files
-      status.json                     {"status": "running" | "finished" | "interrupted" | "failed", "step": ...}
+      status.json                     what the run is doing or how it ended (`RunStatus`, `read_status`)
 
-The trainer writes it (`MetricsLogger`, `write_status`); `zoo.build_shipped` and a re-run of a finished run read
-it back (`last_validation`). Nothing here knows how training works.
+The trainer writes it (`MetricsLogger`, `RunStatus`); `zoo.build_shipped` and a re-run of a finished run read
+it back (`last_validation`); `bridge-train --status WORKDIR` prints `describe_status`. Nothing here knows how
+training works.
+
+status.json holds "status": "running" | "finished" | "interrupted" (a signal; checkpoint saved) | "aborted" (a
+second signal: exited at once, nothing saved) | "failed" (an error, its first line in "reason"), the "step"
+reached, "num_steps", "steps_per_s", "last_checkpoint", "started", "pid", "heartbeat" (a time) and
+"stale_after_s". A running trainer rewrites it (atomically) at every log interval and, from a background
+thread, at least every `HEARTBEAT_S` seconds (so a long compilation or validation does not look dead). The
+rule for readers: a "running" status whose heartbeat is older than "stale_after_s" (= `STALE_BEATS`
+heartbeat periods) belongs to a process that is gone (killed, or its machine lost).
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 import time
 from typing import Optional
 
@@ -126,8 +136,113 @@ def last_validation(workdir: str) -> dict:
     return last
 
 
-def write_status(workdir: str, status: str, step: int, **extra) -> None:
-    """status.json: {"status": "running" | "finished" | "interrupted" | "failed", "step", "time", **extra}."""
-    files.write_json(os.path.join(workdir, STATUS_JSON), {"status": status, "step": int(step), "time": time.time(),
-                                                         **extra})
+HEARTBEAT_S = float(os.environ.get("BRIDGE_JAX_HEARTBEAT_S", "30"))
+"""Seconds between two heartbeats of a running trainer at most (environment variable BRIDGE_JAX_HEARTBEAT_S)."""
+STALE_BEATS = 3
+"""A "running" status without a heartbeat for this many heartbeat periods is stale: the process is gone."""
 
+
+def write_status(workdir: str, status: str, step: int, **extra) -> None:
+    """status.json: {"status", "step", "time", "heartbeat", **extra}, written atomically."""
+    now = time.time()
+    files.write_json(os.path.join(workdir, STATUS_JSON), {"status": status, "step": int(step), "time": now,
+                                                         "heartbeat": now, **extra})
+
+
+class RunStatus:
+    """The status.json of a running trainer: `update` at every log interval, a heartbeat thread in between, and
+    `end` on every way out (finished, interrupted, aborted, failed). A no-op when not `enabled` (processes > 0).
+    Writes are serialised; one that fails (a full disk) is retried by the next one."""
+
+    def __init__(self, workdir: str, enabled: bool, *, heartbeat_s: float | None = None, **fields):
+        self.path = os.path.join(workdir, STATUS_JSON)
+        self.enabled = enabled
+        self.heartbeat_s = float(HEARTBEAT_S if heartbeat_s is None else heartbeat_s)
+        self.fields = {"status": "running", "started": time.time(), "pid": os.getpid(),
+                       "heartbeat_every_s": self.heartbeat_s, "stale_after_s": STALE_BEATS * self.heartbeat_s,
+                       **fields}
+        self._lock = threading.RLock()  # RLock: `end` may run in a signal handler interrupting a write
+        self._stop = threading.Event()
+        self._thread = None
+        if enabled:
+            self._write()
+            self._thread = threading.Thread(target=self._beat, name="bridge_jax-heartbeat", daemon=True)
+            self._thread.start()
+
+    def _write(self) -> None:
+        with self._lock:
+            now = time.time()
+            self.fields.update(time=now, heartbeat=now)
+            try:
+                files.write_json(self.path, self.fields)
+            except OSError:  # a full disk: the next write tries again; the run's own error says what happened
+                pass
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.heartbeat_s):
+            self._write()
+
+    def progress(self, step: int) -> None:
+        """The step reached, written with the next heartbeat or update."""
+        self.fields["step"] = int(step)
+
+    def update(self, **fields) -> None:
+        """New values (step, steps_per_s, last_checkpoint, ...) written now."""
+        if self.enabled:
+            self.fields.update(fields)
+            self._write()
+
+    def end(self, status: str, **fields) -> None:
+        """The final status (heartbeats stop); safe to call from a signal handler; the first call wins."""
+        if not self.enabled or self._stop.is_set():
+            return
+        self._stop.set()
+        self.fields.update(fields, status=status, ended=time.time())
+        self._write()
+
+
+def read_status(workdir: str) -> dict:
+    """The status.json of `workdir` (ValueError naming the file when missing or unreadable)."""
+    path = os.path.join(workdir, STATUS_JSON)
+    try:
+        with open(path) as f:
+            status = json.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file (not a training workdir, or its run has not started)") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: unreadable ({e})") from None
+    if not isinstance(status, dict) or "status" not in status:
+        raise ValueError(f"{path}: not a status file (expected a JSON object with 'status')")
+    return status
+
+
+def is_stale(status: dict, now: float | None = None) -> bool:
+    """Whether a "running" status has missed its heartbeats (see the module docstring): its process is gone."""
+    if status.get("status") != "running":
+        return False
+    now = time.time() if now is None else now
+    beat = status.get("heartbeat", status.get("time", 0.0))
+    return now - float(beat) > float(status.get("stale_after_s", STALE_BEATS * HEARTBEAT_S))
+
+
+def describe_status(workdir: str, now: float | None = None) -> tuple[str, bool]:
+    """(one line for `bridge-train --status`, stale)."""
+    st = read_status(workdir)
+    now = time.time() if now is None else now
+    stale = is_stale(st, now)
+    step = f"step {st.get('step', '?')}" + (f"/{st['num_steps']}" if st.get("num_steps") else "")
+    parts = [f"{workdir}: {st['status']}", step]
+    if st.get("steps_per_s"):
+        parts.append(f"{float(st['steps_per_s']):.2f} steps/s")
+    if st.get("last_checkpoint"):
+        parts.append(f"last checkpoint {st['last_checkpoint']}")
+    beat = st.get("heartbeat", st.get("time"))
+    if beat is not None:
+        parts.append(f"heartbeat {max(0.0, now - float(beat)):.0f} s ago")
+    if st.get("reason"):
+        parts.append(str(st["reason"]).splitlines()[0])
+    line = ", ".join(parts)
+    if stale:
+        line += (f"; STALE: no heartbeat for over {float(st.get('stale_after_s', 0)):.0f} s, the process is gone "
+                 "(killed or its machine lost); run the same command to resume")
+    return line, stale

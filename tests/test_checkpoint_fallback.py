@@ -98,9 +98,10 @@ def _break_no_data_item(wd):
 
 
 BREAKS = {
-    "truncate_largest": (_break_truncate_largest, r"JSONDecodeError: "),
+    "truncate_largest": (_break_truncate_largest, r"(/\S+/checkpoints/50/\S+: )?JSONDecodeError: "),
     "truncate_ocdbt_data": (_break_truncate_ocdbt_data, r"ValueError: OUT_OF_RANGE: .*checkpoints/50/state"),
-    "garbage_data_json": (_break_garbage_data_json, r"JSONDecodeError: Expecting property name"),
+    "garbage_data_json": (_break_garbage_data_json, r"/\S+/checkpoints/50/data/process_0-of-1\.json: JSONDecodeError: "
+                                                    r"Expecting property name"),
     "data_not_object": (_break_data_not_object, r"ValueError: data iterator state is a JSON list, not an object$"),
     "empty_dir": (_break_empty_dir, r"empty directory$"),
     "no_data_item": (_break_no_data_item, r"incomplete: no data item$"),
@@ -198,7 +199,8 @@ def test_restore_latest_all_broken_is_one_error_naming_the_dir_and_newest_proble
     ck.close()
     msg = str(e.value)
     assert msg.startswith(f"{wd / 'checkpoints'}: no usable checkpoint; the newest, step 50, is broken "
-                          "(JSONDecodeError: Expecting property name")
+                          f"({wd / 'checkpoints' / '50' / 'data' / 'process_0-of-1.json'}: JSONDecodeError: Expecting "
+                          "property name")
     assert "the 1 older step(s) are broken too" in msg and "\n" not in msg
     assert {s: _digest(wd / "checkpoints" / s) for s in ("40", "50")} == before  # nothing touched
 
@@ -215,7 +217,8 @@ def test_save_after_fallback_moves_the_broken_step_aside_and_keeps_it(tmp_path):
     with pytest.warns(CheckpointFallbackWarning):
         assert ck.restore_latest(_ABSTRACT).step == 40
     # the resumed run reaches step 50 again: its save must neither crash nor be skipped
-    with pytest.warns(CheckpointFallbackWarning, match=re.escape(f"{ckpts / '50'}: broken checkpoint (JSONDecodeError")
+    with pytest.warns(CheckpointFallbackWarning, match=re.escape(f"{ckpts / '50'}: broken checkpoint (")
+                      + r"(\S+: )?JSONDecodeError"
                       + r".*moved aside to 50\.broken-1"):
         assert ck.save(50, _small_state(55.0), {"next_index": 55})
     ck.wait()
@@ -521,3 +524,14 @@ def test_reason_is_the_first_line_and_unwraps_orbax_array_read_errors():
                                               'database at local file "/x/"')
     assert checkpointing._reason(KeyError("k")) == "KeyError: 'k'"
     assert checkpointing._reason(ValueError("x" * 400)) == "ValueError: " + "x" * 285 + "..."  # 300 in all
+
+
+def test_an_empty_step_dir_is_one_warning_without_orbax_log_lines(tmp_path, caplog):
+    wd = _workdir(tmp_path)
+    (wd / "checkpoints" / "60").mkdir()
+    with caplog.at_level("WARNING"):
+        ck = checkpointing.TrainCheckpointer(wd, save_every=10, keep=5)
+        with pytest.warns(CheckpointFallbackWarning, match="60: skipped a broken checkpoint \\(empty directory\\)"):
+            assert ck.restore_latest(_ABSTRACT).step == 50
+        ck.close()
+    assert [r.getMessage() for r in caplog.records if "Metadata file does not exist" in r.getMessage()] == []

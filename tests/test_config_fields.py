@@ -4,6 +4,7 @@ field with a meaning, and the flat keys of the loop section still work (with a n
 from __future__ import annotations
 
 import dataclasses
+import typing
 
 import jax
 import ml_collections
@@ -74,8 +75,8 @@ def test_a_config_file_with_flat_keys_is_moved_by_parse(capsys):
 
 
 def test_bad_loop_and_eval_values_name_the_option():
-    for item, match in (("loop.log_every=0", "config.loop.log_every must be positive"),
-                        ("loop.steps_per_epoch=0", r"config.loop.steps_per_epoch must be positive \(or -1"),
+    for item, match in (("loop.log_every=0", r"config.loop.log_every=0: must be an integer >= 1$"),
+                        ("loop.steps_per_epoch=0", r"config.loop.steps_per_epoch=0: must be an integer >= 1, or -1"),
                         ("dtype=float16", "config.dtype must be one of")):
         config = configs.load("default:local")
         configs.override(config, [item])
@@ -85,3 +86,50 @@ def test_bad_loop_and_eval_values_name_the_option():
     config.eval = ml_collections.ConfigDict(dict(config.eval.to_dict(), batch=2.5))  # a config file's own section
     with pytest.raises(setup.ConfigError, match="config.eval.batch must be an integer"):
         setup.parse(config, devices=jax.devices()[:1])
+
+
+@pytest.mark.parametrize("item, match", [
+    ("loop.num_train_steps=-5", r"^config.loop.num_train_steps=-5: must be an integer >= 1, or -1 \(derive from the "
+                                r"data\)$"),
+    ("loop.eval_every=-3", r"^config.loop.eval_every=-3: must be an integer >= 0, or -1 \(never\)$"),
+    ("loop.image_every=-2", r"^config.loop.image_every=-2: must be an integer >= 0, or -1"),
+    ("eval.batch=0", r"^config.eval.batch=0: must be an integer >= 1$"),
+    ("eval.num_samples=-1", r"^config.eval.num_samples=-1: must be an integer >= 0$"),
+    ("data.read_threads=0", r"^config.data.read_threads=0: must be an integer >= 1$"),
+    ("data.max_skip=-1", r"^config.data.max_skip=-1: must be an integer >= 0$"),
+    ("loss.num_scales=0", r"^config.loss.num_scales=0: must be an integer >= 1$"),
+    ("num_devices=-4", r"^config.num_devices=-4: must be an integer >= 1, or -1 \(all devices\)$"),
+    ("global_batch=0", r"^config.global_batch=0: must be an integer >= 1$"),
+    ("distributed.process_id=-2", r"^config.distributed.process_id=-2: must be an integer >= 0, or -1"),
+])
+def test_counts_and_intervals_out_of_range_are_one_line_naming_field_value_and_rule(item, match):
+    config = configs.load("default:local")
+    configs.override(config, [item])
+    with pytest.raises(setup.ConfigError, match=match) as info:
+        setup.parse(config, devices=jax.devices()[:1])
+    assert "\n" not in str(info.value)
+
+
+def test_every_integer_field_of_the_config_records_has_a_count_rule_or_is_declared_not_a_count():
+    for section, cls in setup.SECTIONS:
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if hints[f.name] in (int, typing.Optional[int]):
+                key = f"{section}.{f.name}" if section else f.name
+                assert key in setup.COUNT_RULES or key in setup.NOT_COUNTS, key
+
+
+def test_minus_one_still_derives_the_step_count():
+    config = configs.load("default:local")
+    configs.override(config, ["loop.num_train_steps=-1", "loop.steps_per_epoch=7", "loop.num_epochs=3"])
+    run = setup.parse(config, devices=jax.devices()[:1])
+    assert run.steps(None) == (7, 21)
+
+
+def test_train_cli_refuses_a_negative_step_count_in_one_line(tmp_path, capsys):
+    from bridge_jax import train
+    code = train.main(["--config=demo:short", f"--workdir={tmp_path / 'w'}", "--config.loop.num_train_steps=-5"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip().splitlines() == [
+        "error: config.loop.num_train_steps=-5: must be an integer >= 1, or -1 (derive from the data)"]
+    assert not (tmp_path / "w").exists()

@@ -92,16 +92,17 @@ class _Writer:
             w(b"R")
         elif isinstance(obj, _Tensor):
             a = obj.array
-            stride = tuple(s // a.itemsize for s in a.strides)
+            shape, stride = getattr(obj, "layout", (tuple(a.shape), tuple(s // a.itemsize for s in a.strides)))
             location = "cuda:0" if self.storage_module == "torch.cuda" else "cpu"
-            pid = ("storage", _Global(self.storage_module, "FloatStorage"), obj.key, location, int(a.size))
+            pid = ("storage", _Global(self.storage_module, "FloatStorage"), obj.key, location,
+                   int(getattr(obj, "numel", a.size)))
             if self.legacy:
                 pid = pid + (None,)
             self._save(_Global("torch._utils", "_rebuild_tensor_v2"))
             w(b"(")
             self._save(pid)
             w(b"Q")  # BINPERSID
-            for v in (0, tuple(a.shape), stride, False):
+            for v in (0, shape, stride, False):
                 self._save(v)
             self._save(_Call(_Global("collections", "OrderedDict")))
             w(b"tR")
@@ -337,3 +338,57 @@ def test_parity_with_upstream_fixture():
     print("parity max abs error per scale:", errors, "\nactivation rel. errors:", report)
     assert all(v < 1e-4 for v in report.values()), f"first mismatch in activations: {report}"
     assert all(v < 1e-4 for v in errors.values()), errors
+
+
+# ---------------------------------------------------------------- crafted files claiming huge tensors
+
+
+class _Claim(_Tensor):
+    """A tensor whose pickled shape / stride claim more than its (tiny) storage holds."""
+
+    def __init__(self, key, storage, shape, stride, numel=None):
+        super().__init__(key, storage)
+        self.layout = (tuple(shape), tuple(stride))
+        self.numel = numel if numel is not None else storage.size
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+@pytest.mark.parametrize("shape, stride, storage, why", [
+    ((200000, 200000), (0, 0), 1, "stride 0"),  # 0.3 KB asking for 149 GiB
+    ((200000, 200000), (1, 200000), 1, "past the end"),
+    ((4, 4), (-4, 1), 16, "negative"),
+    ((70000, 70000), (70000, 1), 70000 * 70000, None),  # 18 GiB storage: refused before it is read
+])
+def test_a_tensor_claiming_more_than_its_storage_is_one_line_before_any_allocation(tmp_path, capsys, legacy, shape,
+                                                                                    stride, storage, why):
+    import tracemalloc
+    src = tmp_path / "bomb.pth"
+    if storage > 1000:  # a storage claiming 18 GiB, written without its bytes
+        t = _Claim("0", np.zeros(1, np.float32), shape, stride, numel=storage)
+        write_pth(src, {"conv1.weight": t}, [t], legacy=legacy)
+        if legacy:  # the storage header (numel) before the bytes claims the 18 GiB there
+            src.write_bytes(src.read_bytes()[:-12] + struct.pack("<q", storage))
+        expect = r"storage 0 claims 18.3 GiB"
+    else:
+        t = _Claim("0", np.arange(storage, dtype=np.float32), shape, stride)
+        write_pth(src, {"conv1.weight": t}, [t], legacy=legacy)
+        expect = rf"tensor conv1.weight claims [0-9.]+ (GiB|B) from a {storage * 4} B storage \(.*{why}"
+    assert src.stat().st_size < 2000
+    tracemalloc.start()
+    try:
+        code = convert.main(["--from", str(src), "--out", str(tmp_path / "out")])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"error: {src}: ") and re.search(expect, err), err
+    assert peak < 200 * 2**20 and not (tmp_path / "out").exists()
+
+
+def test_the_stride_zero_bomb_names_its_size_in_gib(tmp_path):
+    src = tmp_path / "bomb.pth"
+    t = _Claim("0", np.zeros(1, np.float32), (200000, 200000), (0, 0))
+    write_pth(src, {"w": t}, [t])
+    with pytest.raises(convert.CheckpointFormatError, match=r"bomb.pth: tensor w claims 149 GiB from a 4 B storage"):
+        convert.load_state_dict(src)

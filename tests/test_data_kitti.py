@@ -161,3 +161,13 @@ def test_raw_cycles_all_and_kitti_split(tmp_path):
 def test_raw_cycles_empty_folder_error_names_layout(tmp_path):
     with pytest.raises(ValueError, match="image_02/data"):
         kitti.raw_cycles(str(tmp_path), "all")
+
+
+def test_a_png_cut_inside_its_signature_is_reported_as_truncated_not_empty(tmp_path):
+    from bridge_jax.data import folders
+    path = tmp_path / "cut.png"
+    path.write_bytes(b"\x89PNG")
+    with pytest.raises(kitti.CorruptImageError, match=r"cut.png: truncated PNG \(only 4 bytes\)"):
+        kitti.read_image(str(path))
+    with pytest.raises(kitti.CorruptImageError, match=r"truncated PNG: only 4 bytes"):
+        folders.image_size(str(path))

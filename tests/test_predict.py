@@ -292,3 +292,50 @@ def test_help_teaches():
     assert "bridge-predict --checkpoint" in text            # the docstring's examples are the epilog
     assert "flow_flo/<stem>.flo" in text and "mapping" in text
     assert "shipped model name such as demo" in text and "--debug" in text
+
+
+# ---------------------------------------------------------------------------------- large and tiny inputs
+
+
+def test_a_large_input_is_decoded_at_a_reduced_size_and_written_at_its_own(tiny_checkpoint, tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    big = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (1280, 960), interpolation=cv2.INTER_CUBIC)
+    a, b = _write(tmp_path / "a.png", big), _write(tmp_path / "b.png", np.roll(big, 8, axis=1))
+    p = inference.load_predictor(tiny_checkpoint, working_size=(64, 64))
+    img = predict.read_image(a, p.working_size)
+    # 960x1280 at a 64x64 working size: 1/4 keeps >= 2x the working size per side (1/8 would be 120x160 < 128)
+    assert img.shape == (240, 320, 3) and inference.input_size(img) == (960, 1280)
+    np.testing.assert_array_equal(predict.read_image(a), big)  # without a working size: the full image
+    out = tmp_path / "out"
+    assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(out), "--working-size", "64x64",
+                 "--raw", "png,npy"]) == 0
+    assert np.load(out / "flow_npy" / "a.npy").shape == (960, 1280, 2)
+    _decodable(out / "flow" / "a.png", (960, 1280))
+    flow, valid = predict.kitti.read_flow_png(str(out / "flow_kitti" / "a.png"))
+    assert flow.shape == (960, 1280, 2) and valid.all()
+    err = capsys.readouterr().err
+    assert "the 960x1280 input runs at 64x64" in err and "decoded at a reduced size" in err
+
+
+def test_block_wise_writing_matches_whole_maps(monkeypatch):
+    rng = np.random.default_rng(2)
+    flow = rng.normal(0, 5, (37, 23, 2)).astype(np.float32)
+    whole = predict.visualize.flow_to_color(flow, max_flow=7.0)
+    monkeypatch.setattr(inference, "ROW_BLOCK_PIXELS", 50)  # blocks of 2 rows
+    np.testing.assert_array_equal(predict._by_rows(lambda f: predict.visualize.flow_to_color(f, max_flow=7.0),
+                                                   flow), whole)
+    small = rng.normal(0, 3, (5, 7, 2)).astype(np.float32)
+    np.testing.assert_allclose(inference.flow_to_input_resolution(small, 37, 23),
+                               inference._resize(small, inference.resize_weights_align_corners(5, 37),
+                                                 inference.resize_weights_align_corners(7, 23))
+                               * np.array([23 / 7, 37 / 5], np.float32), rtol=1e-6)
+
+
+def test_an_input_below_the_models_minimum_is_one_line(tiny_checkpoint, tmp_path, capsys):
+    a = _write(tmp_path / "dot0.png", np.zeros((1, 1, 3), np.uint8))
+    b = _write(tmp_path / "dot1.png", np.zeros((1, 1, 3), np.uint8))
+    assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {a}: a 1x1 input is smaller than model resnet_md_tiny accepts (at least 16x16 pixels, "
+                   "height x width)"]
+    assert not (tmp_path / "out").exists()

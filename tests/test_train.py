@@ -268,9 +268,13 @@ def test_nan_batches_skipped_then_stop(tmp_path, monkeypatch, capsys):
 
     _inject_nan(monkeypatch, set(range(2, 100)))
     wd = tmp_path / "b"
+    capsys.readouterr()
     with pytest.raises(train.TrainingDiverged, match="3 non-finite steps in a row.*checkpoints/2"):
         train.train_and_evaluate(tiny_config(num_train_steps=6, max_nonfinite_in_row=3), str(wd))
     assert sorted(os.listdir(wd / "checkpoints")) == ["2"]
+    assert capsys.readouterr().err.count("update skipped") == 1  # one line for the row, then the error
+    status = json.load(open(wd / "status.json"))
+    assert status["status"] == "failed" and "non-finite steps in a row" in status["reason"]
 
 
 # ------------------------------------------------------------------------------------------------------

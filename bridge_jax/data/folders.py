@@ -280,6 +280,8 @@ def image_size(path: str) -> tuple[int, int]:
             head = fh.read(24)
             if not head:
                 raise kitti.CorruptImageError(path, f"{UNREADABLE} (empty file)")
+            if len(head) < 24 and _PNG_SIGNATURE.startswith(head[:8]):
+                raise kitti.CorruptImageError(path, f"{UNREADABLE} (truncated PNG: only {len(head)} bytes)")
             if head[:8] == _PNG_SIGNATURE:
                 if len(head) < 24 or head[12:16] != b"IHDR":
                     raise kitti.CorruptImageError(path, f"{UNREADABLE} (PNG without an IHDR header)")

@@ -66,6 +66,8 @@ def check_image_bytes(data: bytes, path: str = "<bytes>") -> None:
     """
     if len(data) == 0:
         raise CorruptImageError(path, "empty file")
+    if len(data) < 8 and b"\x89PNG\r\n\x1a\n".startswith(bytes(data)):
+        raise CorruptImageError(path, f"truncated PNG (only {len(data)} bytes)")
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         if b"IEND" not in data[-16:]:
             raise CorruptImageError(path, "truncated PNG (no IEND chunk at the end)")
@@ -115,8 +117,9 @@ def write_image(path: str, rgb: np.ndarray) -> None:
 # Flow and disparity PNGs
 # ----------------------------------------------------------------------------------------------------------
 
-def encode_flow_png(flow: np.ndarray, valid: np.ndarray | None = None) -> bytes:
-    """flow float (H, W, 2) pixels (u, v), valid bool (H, W) (default: finite) → KITTI flow PNG bytes.
+def flow_png_array(flow: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """flow float (H, W, 2) pixels (u, v), valid bool (H, W) (default: finite) → the uint16 BGR array of a KITTI
+    flow PNG (`encode_flow_png`); pixelwise, so a large map can be converted a block of rows at a time.
 
     Values are clipped to the representable range ±512 px; invalid pixels are stored as (0, 0, 0).
     """
@@ -131,7 +134,24 @@ def encode_flow_png(flow: np.ndarray, valid: np.ndarray | None = None) -> bytes:
     bgr[..., 0] = valid
     bgr[..., 1] = np.where(valid, enc[..., 1], 0)
     bgr[..., 2] = np.where(valid, enc[..., 0], 0)
-    return _encode(".png", bgr, "flow")
+    return bgr
+
+
+def encode_flow_png(flow: np.ndarray, valid: np.ndarray | None = None) -> bytes:
+    """flow float (H, W, 2) pixels (u, v), valid bool (H, W) (default: finite) → KITTI flow PNG bytes.
+
+    Values are clipped to the representable range ±512 px; invalid pixels are stored as (0, 0, 0).
+    """
+    return bytes(encode_png16(flow_png_array(flow, valid), "flow"))
+
+
+def encode_png16(array: np.ndarray, name: str) -> memoryview:
+    """A uint16 (H, W[, 3]) array (`flow_png_array`, `disp_png_array`) → the PNG's bytes, as a view of OpenCV's
+    buffer (no copy: a large map's PNG is not held twice)."""
+    ok, buf = cv2.imencode(".png", array)
+    if not ok:
+        raise ValueError(f"could not encode {name} as .png")
+    return memoryview(buf).cast("B")
 
 
 def decode_flow_png(data: bytes, path: str = "<bytes>") -> tuple[np.ndarray, np.ndarray]:
@@ -156,8 +176,9 @@ def write_flow_png(path: str, flow: np.ndarray, valid: np.ndarray | None = None)
     files.write_bytes(path, encode_flow_png(flow, valid))
 
 
-def encode_disp_png(disp: np.ndarray, valid: np.ndarray | None = None) -> bytes:
-    """disp float (H, W) pixels ≥ 0, valid bool (default: finite and > 0) → KITTI disparity PNG bytes."""
+def disp_png_array(disp: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """disp float (H, W) pixels ≥ 0, valid bool (default: finite and > 0) → the uint16 array of a KITTI disparity
+    PNG (`encode_disp_png`); pixelwise."""
     disp = np.asarray(disp, np.float64)
     if disp.ndim != 2:
         raise ValueError(f"disparity must be (H, W), got {disp.shape}")
@@ -165,7 +186,12 @@ def encode_disp_png(disp: np.ndarray, valid: np.ndarray | None = None) -> bytes:
         valid = np.isfinite(disp) & (disp > 0)
     valid = np.asarray(valid, bool)
     enc = np.clip(np.rint(np.nan_to_num(disp) * 256.0), 1, 65535).astype(np.uint16)
-    return _encode(".png", np.where(valid, enc, 0).astype(np.uint16), "disparity")
+    return np.where(valid, enc, 0).astype(np.uint16)
+
+
+def encode_disp_png(disp: np.ndarray, valid: np.ndarray | None = None) -> bytes:
+    """disp float (H, W) pixels ≥ 0, valid bool (default: finite and > 0) → KITTI disparity PNG bytes."""
+    return bytes(encode_png16(disp_png_array(disp, valid), "disparity"))
 
 
 def decode_disp_png(data: bytes, path: str = "<bytes>") -> tuple[np.ndarray, np.ndarray]:
