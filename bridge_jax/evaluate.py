@@ -135,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="write results.json / results.md / pictures/ here")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out folder")
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
-                   help=cli.WORKING_SIZE_HELP + f"; default: {inference.DEFAULT_WORKING_SIZE}")
+                   help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
+                        f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")

@@ -43,7 +43,7 @@ DEFAULT_WIDTH = 512
 NATIVE = "native"
 """Working-size choice: run every input at (nearly) its own resolution (`native_working_size`)."""
 DEFAULT_WORKING_SIZE = "trained"
-"""What the commands run at when `--working-size` is not given."""
+"""What the commands run at when `--working-size` is not given and the model's card recommends nothing."""
 NATIVE_MAX_PIXELS = 1024 * 768
 """Largest working size (pixels) the native rule picks: bigger inputs are run at this many pixels (same aspect)."""
 ROW_BLOCK_PIXELS = 1 << 21
@@ -440,17 +440,18 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     runs each input at its own resolution instead (`native_working_size`; that size is then only the fallback).
     `dtype=None` uses the model config's "dtype" if it has one, else float32.
     `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
-    "trained", or None (the default, `DEFAULT_WORKING_SIZE`).
+    "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
+    `DEFAULT_WORKING_SIZE`.
     Raises ValueError naming the checkpoint (missing, unreadable), or `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits.
     """
-    if working_size is None:
-        working_size = DEFAULT_WORKING_SIZE
+    if working_size is None and height is None and width is None and not native:
+        working_size = zoo.default_working_size(path) or DEFAULT_WORKING_SIZE
     if working_size == NATIVE:
         native = True
     elif isinstance(working_size, tuple):
         height, width = working_size
-    elif working_size != "trained":
+    elif working_size not in ("trained", None):  # None: explicit height/width or native given
         raise ValueError(f"{size_option} {working_size!r}: expected HxW, 'native' or 'trained'")
     if height is None or width is None:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)

@@ -661,7 +661,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video: mono (none) or left|right side by side in each frame (sbs)")
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
-                   help=cli.WORKING_SIZE_HELP + f"; default: {inference.DEFAULT_WORKING_SIZE}")
+                   help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
+                        f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     p.add_argument("--batch", type=int, default=4, help="pairs per inference call (one compiled shape)")
     p.add_argument("--raw", default="png",
                    help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "

@@ -272,6 +272,19 @@ def _pick(d: dict, keys) -> dict:
     return {k: d[k] for k in keys}
 
 
+HEADLINE = (("motorcycle", "d1_all"), ("motorcycle", "epe_all"), ("homography", "epe_all"),
+            ("heldout_synthetic", "flow_epe_all"), ("heldout_synthetic", "disp_epe_all"))
+"""The numbers that choose a model's default working size (lower is better)."""
+
+
+def pick_working_size(card: dict) -> str:
+    """"native" when the native size wins more of the `HEADLINE` numbers than the trained size, else
+    "trained" (what the model's card then recommends, and `--working-size` defaults to)."""
+    wins = sum(card[c]["native"][k] < card[c]["trained"][k] for c, k in HEADLINE
+               if "native" in card[c] and "trained" in card[c])
+    return "native" if wins > len(HEADLINE) / 2 else "trained"
+
+
 def markdown(results: dict, header: str) -> str:
     lines = [header, ""]
     cols = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
@@ -334,7 +347,8 @@ def main(argv=None) -> int:
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
                         "opencv": results[check][opencv]} for check in checks}
         with open(args.card, "w") as f:
-            json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}"}, f, indent=1)
+            json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}",
+                       "default_working_size": pick_working_size(card)}, f, indent=1)
     return 0
 
 

@@ -79,3 +79,15 @@ def test_random_homography_keeps_motion_moderate(seed):
     tx, ty = real_images.apply_homography(g, xs, ys)
     mag = np.hypot(tx - xs, ty - ys)
     assert 0.5 < mag.mean() < 40.0
+
+
+def test_default_working_size_is_the_one_that_wins_most_checks():
+    def card(native_better):
+        out = {}
+        for i, (check, key) in enumerate(real_images.HEADLINE):
+            out.setdefault(check, {"trained": {}, "native": {}})
+            out[check]["trained"][key] = 1.0
+            out[check]["native"][key] = 0.5 if i < native_better else 2.0
+        return out
+    assert real_images.pick_working_size(card(3)) == "native"
+    assert real_images.pick_working_size(card(2)) == "trained"

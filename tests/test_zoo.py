@@ -27,11 +27,20 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def test_shipped_demo_matches_the_current_demo_config():
-    """When the demo config changes, the shipped weights must be regenerated (this test says how)."""
-    meta = zoo.info("demo")
-    run = setup.parse(demo_config.get_config(), devices=jax.devices()[:1])
-    how = "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"
+SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
+    "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
+    "long": ("long,real", "retrain with `bridge-train --config=demo:long,real --workdir=work/long`, run "
+                          "experiments/real_images.py --models work/long --card work/long_card.json and "
+                          "`bridge-zoo build long --from work/long --card work/long_card.json`"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_model_matches_its_config(name):
+    """When a shipped model's config changes, its weights must be regenerated (this test says how)."""
+    arg, how = SHIPPED[name]
+    meta = zoo.info(name)
+    run = setup.parse(demo_config.get_config(arg), devices=jax.devices()[:1])
     assert meta["model"] == json.loads(json.dumps(run.model.model_json())), how
     # every setting the shipped run recorded still has that value (fields added since keep the old behaviour
     # by default, so they do not call for retraining)
@@ -40,9 +49,29 @@ def test_shipped_demo_matches_the_current_demo_config():
     recorded["loop"] = dict(recorded.get("loop", {}), **moved)
     assert _changed(recorded, json.loads(json.dumps(run.config_json))) == [], how
     assert (meta["height"], meta["width"]) == (run.height, run.width)
-    data = (zoo.ZOO_DIR / "demo.npz").read_bytes()
+    data = (zoo.ZOO_DIR / f"{name}.npz").read_bytes()
     assert hashlib.sha256(data).hexdigest() == meta["sha256"]
     assert len(data) < 3_000_000  # "a few MB at most"
+
+
+def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
+    """`bridge-zoo show long`: the recipe, the steps, the training time and machine, and its real-image numbers
+    next to OpenCV's, from its card."""
+    from bridge_jax.zoo.__main__ import main
+    meta = zoo.info("long")
+    assert meta["config"]["data"]["synthetic_scene"] == "real" and meta["config"]["init_from"] == "demo"
+    assert meta["training"]["seconds"] > 0 and "core" in meta["training"]["machine"]
+    assert set(meta["real_images"]) == {"motorcycle", "homography", "heldout_synthetic"}
+    for by_size in meta["real_images"].values():
+        assert {"trained", "native", "opencv"} <= set(by_size)
+    assert main(["show", "long"]) == 0
+    out = capsys.readouterr().out
+    assert f"long: pwc_lite trained at 128x256, {meta['steps']} steps" in out
+    assert "scenes real" in out and meta["training"]["machine"] in out
+    d1 = meta["real_images"]["motorcycle"]["native"]["d1_all"]
+    line = next(ln for ln in out.splitlines() if "motorcycle @ native:" in ln)
+    assert f"d1_all {d1:.3f}" in line
+    assert f"default working size: {meta['default_working_size']}" in out
 
 
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
@@ -106,15 +135,16 @@ def test_registered_and_local_names_load_their_folder(tmp_path, monkeypatch):
         zoo._ENTRIES.pop("mine_for_test")
 
 
-def test_predict_with_the_shipped_model_from_another_directory(tmp_path):
-    """`predict --checkpoint demo a.png b.png --out o` from a folder outside the repo: the flow it writes (as
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_predict_with_the_shipped_model_from_another_directory(tmp_path, name):
+    """`predict --checkpoint NAME a.png b.png --out o` from a folder outside the repo: the flow it writes (as
     .npy) is closer to the exact synthetic flow than zero motion."""
     sample = synthetic.render_sample(synthetic.sample_seed(7, 0), 64, 128)
     a, b = (tmp_path / "frame_a.png"), (tmp_path / "frame_b.png")
     cv2.imwrite(str(a), sample["cycle"][0][..., ::-1])
     cv2.imwrite(str(b), sample["cycle"][2][..., ::-1])
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    r = subprocess.run([sys.executable, "-m", "bridge_jax.predict", "--checkpoint", "demo", str(a), str(b),
+    r = subprocess.run([sys.executable, "-m", "bridge_jax.predict", "--checkpoint", name, str(a), str(b),
                         "--out", "o", "--raw", "npy"], cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]

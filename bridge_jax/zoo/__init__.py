@@ -201,6 +201,14 @@ def trained_size(spec: str | os.PathLike) -> Optional[tuple[int, int]]:
     return None
 
 
+def default_working_size(spec: str | os.PathLike) -> Optional[str]:
+    """The working size a shipped model's card recommends ("native" or "trained", measured by its real-image
+    checks), or None (no card entry, or not a shipped model)."""
+    if is_name(spec) and os.fspath(spec) in _ENTRIES and _ENTRIES[os.fspath(spec)].kind == "shipped":
+        return info(os.fspath(spec)).get("default_working_size")
+    return None
+
+
 def resolve_path(spec: str | os.PathLike) -> str:
     """A registry name of a local entry → its folder; a path → itself; a shipped name → ValueError (it has no
     folder: use `load_params`)."""
@@ -289,6 +297,9 @@ def card_lines(name: str) -> list[str]:
         lines.append("  validation (synthetic, trained size): " + ", ".join(
             f"{k} {val[k]:.3f}" for k in ("flow_epe_all", "flow_epe_vs_zero", "disp_epe_all", "disp_d1_all")
             if isinstance(val.get(k), (int, float))))
+    if meta.get("default_working_size"):
+        lines.append(f"  default working size: {meta['default_working_size']} (the one that won more of its "
+                     "real-image checks; --working-size overrides it)")
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
             lines.append(f"  {check} @ {size}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
