@@ -18,8 +18,9 @@ next to OpenCV on the same inputs at full resolution:
     python experiments/real_images.py --models demo,long --sizes trained,native \\
         --out experiments/results/real_images.md --pictures experiments/results/real_images
 
-Writes the markdown table (machine and date in its header), a JSON file beside it with every number, and picture
-panels (input | ground truth | OpenCV | each model) under `--pictures`.
+Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
+panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
+first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`).
 """
 from __future__ import annotations
 
@@ -263,7 +264,9 @@ def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pi
             image, gt = gt_images[check]
             tiles = [image, gt] + [t for _, t in items]
             labels = ["input", "ground truth"] + [n for n, _ in items]
-            visualize.write_image(os.path.join(pictures, f"{check}.png"), visualize.panel(tiles, labels, ncols=3))
+            picture = visualize.panel(tiles, labels, ncols=3)
+            picture = cv2.resize(picture, (picture.shape[1] // 2, picture.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            visualize.write_image(os.path.join(pictures, f"{check}.jpg"), picture)  # half size: small files
     results["seconds"] = timing
     return results
 
