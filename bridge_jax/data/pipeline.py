@@ -93,6 +93,15 @@ class SkipLog:
         with self._lock:
             self._cycles.clear()
 
+    # grain sends the transforms holding the log to its worker processes: pickle the records, not the lock (each
+    # process gets a fresh lock; a worker's own records travel back with its batches, see `_CollectSkips`).
+    def __getstate__(self) -> dict:
+        return {"cycles": self.items()}
+
+    def __setstate__(self, state: dict) -> None:
+        self._lock = threading.Lock()
+        self._cycles = dict(state["cycles"])
+
 
 def _report(*logs: SkipLog) -> dict:
     cycles, causes = set(), {}
