@@ -192,21 +192,25 @@ def _map(tree, fn):
     return {k: _map(v, fn) if isinstance(v, dict) else fn(v) for k, v in tree.items()}
 
 
+def _shipped_info(spec: str | os.PathLike) -> Optional[dict]:
+    """`info(spec)` when `spec` names a shipped model, else None (a path, or a local entry)."""
+    if is_name(spec) and os.fspath(spec) in _ENTRIES and _ENTRIES[os.fspath(spec)].kind == "shipped":
+        return info(os.fspath(spec))
+    return None
+
+
 def trained_size(spec: str | os.PathLike) -> Optional[tuple[int, int]]:
     """(height, width) a shipped model was trained at; None for anything else (paths are handled by
     `inference.trained_working_size`)."""
-    if is_name(spec) and os.fspath(spec) in _ENTRIES and _ENTRIES[os.fspath(spec)].kind == "shipped":
-        meta = info(os.fspath(spec))
-        return int(meta["height"]), int(meta["width"])
-    return None
+    meta = _shipped_info(spec)
+    return None if meta is None else (int(meta["height"]), int(meta["width"]))
 
 
 def default_working_size(spec: str | os.PathLike) -> Optional[str]:
     """The working size a shipped model's card recommends ("native" or "trained", measured by its real-image
     checks), or None (no card entry, or not a shipped model)."""
-    if is_name(spec) and os.fspath(spec) in _ENTRIES and _ENTRIES[os.fspath(spec)].kind == "shipped":
-        return info(os.fspath(spec)).get("default_working_size")
-    return None
+    meta = _shipped_info(spec)
+    return None if meta is None else meta.get("default_working_size")
 
 
 def resolve_path(spec: str | os.PathLike) -> str:
