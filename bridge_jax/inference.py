@@ -52,6 +52,14 @@ REDUCED_READ_NOTICE = 8.0
 """An input more than this many times its working size per side gets a notice (and is read at a reduced size)."""
 PAIR_KINDS = ("flow", "stereo")
 """What a pair is: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
+COMPILE_MODES = ("auto", "fast", "full")
+"""How the network is compiled. "full": XLA's default optimisation. "fast": the LLVM back end at optimisation
+level 0 (`xla_backend_optimization_level=0`). On a 2-core AVX-512 VM (2026-12-02) that cut pwc_lite's compile
+from 8.3 to 3.7 s at 64x128 and from 19.9 to 6.3 s at 256x512 while each call got 12-26 % slower (20.5 -> 22.9 ms,
+294 -> 371 ms): a few pairs answer sooner "fast", long runs sooner "full". "auto": `compile_mode_for`."""
+FAST_COMPILE_PAIRS = 64
+"""`compile_mode_for("auto", n)`: runs of at most this many pairs per working size compile "fast" (at 256x512
+the 13.6 s saved pay for ~180 slower calls; at 64x128 for ~2,000)."""
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -201,6 +209,16 @@ def native_working_size(model_name: str, height: int, width: int,
     return models.suggest_working_size(model_name, *size) or size
 
 
+def compile_mode_for(mode: str, num_pairs: Optional[int]) -> str:
+    """"fast" or "full" for a run of `num_pairs` pairs (None = unknown) under `mode` (one of `COMPILE_MODES`;
+    "auto" = "fast" up to `FAST_COMPILE_PAIRS` pairs, else "full")."""
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode {mode!r}: expected one of {', '.join(COMPILE_MODES)}")
+    if mode != "auto":
+        return mode
+    return "fast" if num_pairs is not None and num_pairs <= FAST_COMPILE_PAIRS else "full"
+
+
 def input_size(image: Any) -> tuple[int, int]:
     """(h, w) of the input an image stands for: its own shape, or for an image read at a reduced size
     (`predict.ImageReader`) the size of the file (`full_size`): maps come back at that size."""
@@ -243,6 +261,9 @@ class Predictor:
         maps come back replicated (training's validation runs on the training mesh). Default: one device.
       native: run each pair at its own resolution (`native_working_size`, capped at `max_pixels`) instead of
         `height x width`; each new size compiles the network once (then it is cached).
+      compile_mode: "full" (default) or "fast" (`COMPILE_MODES`: quicker to compile, slower per call), or
+        "auto" = "full"; settable later through the `compile_mode` attribute (`compile_mode_for` picks one for a
+        run whose number of pairs is known, as the commands do).
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
     """
@@ -253,7 +274,7 @@ class Predictor:
 
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                  dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None,
-                 native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS):
+                 native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS, compile_mode: str = "full"):
         self.model_cfg = dict(model_cfg) if model_cfg else None
         self.model_name = (model_cfg or {}).get("name", "resnet_md")
         models.check_working_size(self.model_name, height, width)
@@ -264,13 +285,24 @@ class Predictor:
         self.height, self.width = int(height), int(width)
         self.mesh = mesh
         self.trace_count = 0
+        self.compile_mode = compile_mode_for(compile_mode, None)
+        self._jits: dict[str, Any] = {}  # compile mode -> jitted network (each keeps its own executables)
         if mesh is None:
             self.params = jax.device_put(params)
-            self._net = jax.jit(self._forward, static_argnums=(2,))
         else:
             self._pairs_sharding = NamedSharding(mesh, P(mesh.axis_names[0]))
             self.params = params
-            self._net = jax.jit(self._forward, static_argnums=(2,), out_shardings=NamedSharding(mesh, P()))
+
+    @property
+    def _net(self):
+        """The jitted network for the current `compile_mode`."""
+        fn = self._jits.get(self.compile_mode)
+        if fn is None:
+            options = {"xla_backend_optimization_level": 0} if self.compile_mode == "fast" else None
+            shardings = {} if self.mesh is None else {"out_shardings": NamedSharding(self.mesh, P())}
+            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2,), compiler_options=options,
+                                                    **shardings)
+        return fn
 
     def _forward(self, params, pairs, rows):
         self.trace_count += 1  # Python side effect: runs once per trace
@@ -280,6 +312,7 @@ class Predictor:
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
         other = copy.copy(self)
         other.params = params
+        other._jits = self._jits  # shared on purpose: the compiled functions do not depend on the values
         return other
 
     def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
@@ -431,14 +464,15 @@ def resize_notice(predictor: Predictor, height: int, width: int, factor: float =
 
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
                    dtype: Any = None, size_option: str = "working size", native: bool = False,
-                   max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None) -> Predictor:
+                   max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None,
+                   compile_mode: str = "full") -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
     Working size: `height`/`width` if given, else the size a training workdir or shipped model was trained at
     (a net trained at 64x128 sees 4x larger motions at 256x512), else 256 x 512 (the paper's). `native=True`
     runs each input at its own resolution instead (`native_working_size`; that size is then only the fallback).
-    `dtype=None` uses the model config's "dtype" if it has one, else float32.
+    `dtype=None` uses the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
     `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
     "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
     `DEFAULT_WORKING_SIZE`.
@@ -464,10 +498,10 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     if dtype is None:
         dtype = cfg.get("dtype")
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate,
-                     native=native, max_pixels=max_pixels)
+                     native=native, max_pixels=max_pixels, compile_mode=compile_mode)
 
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",
-           "to_rgb_float", "resize_images",
+           "to_rgb_float", "resize_images", "COMPILE_MODES", "compile_mode_for",
            "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "PAIR_KINDS",
            "input_size", "minimum_input_size"]

@@ -98,6 +98,14 @@ class Source:
     names: Optional[list[str]] = None
     inputs: Optional[Callable[[int], dict]] = None
 
+    @property
+    def num_pairs(self) -> Optional[int]:
+        """How many pairs the network will see: flow between consecutive frames, plus disparity per frame of a
+        stereo input; None when the number of frames is unknown."""
+        if self.num_frames is None:
+            return None
+        return max(0, self.num_frames - 1) + (self.num_frames if self.stereo else 0)
+
     def name(self, index: int) -> str:
         """The output file stem of frame `index`."""
         return self.names[index] if self.names is not None else f"{index:06d}"
@@ -485,6 +493,8 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
     also written to ``predict.json``.
     """
     write_video = source.kind == "video" if write_video is None else write_video
+    if source.num_pairs:  # one pair is not padded to a batch of 4: each padded row costs a full network call
+        batch = min(batch, source.num_pairs)
     runner = Runner(predictor, batch)
     pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "disp":...} for the video
     results: dict[tuple[str, int], np.ndarray] = {}
@@ -663,7 +673,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
-    p.add_argument("--batch", type=int, default=4, help="pairs per inference call (one compiled shape)")
+    p.add_argument("--batch", type=int, default=4,
+                   help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
+    p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
+                   help="how the network is compiled: 'fast' (about 2-3x quicker to compile, 10-25%% slower per "
+                        "pair), 'full' (XLA's default optimisation) or 'auto' (fast for inputs of at most "
+                        f"{inference.FAST_COMPILE_PAIRS} pairs, else full); compiled networks are cached between "
+                        "runs either way")
     p.add_argument("--raw", default="png",
                    help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "
                         "(*_npy/), flo (flow, flow_flo/), pfm (disparity and depth, *_pfm/), or none; "
@@ -715,14 +731,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size")
+                                                  size_option="--working-size",
+                                                  compile_mode=inference.compile_mode_for(args.compile, None))
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size")
+                                                  size_option="--working-size",
+                                                  compile_mode=inference.compile_mode_for(args.compile,
+                                                                                          source.num_pairs))
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
