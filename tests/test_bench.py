@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import bench
+from bridge_jax.models import layers
 from tests.train_helpers import REPO, enable_compilation_cache, plain_loss_and_grads, subprocess_env
 
 
@@ -167,6 +168,7 @@ def test_conv_backward_records_every_weight_gradient_method(monkeypatch):
     x, XLA's in batch chunks, XLA's in NCHW), the same weight gradient (checked inside against XLA's), the time
     ratio and what "auto" picks; two small layers keep it quick."""
     import argparse
+    monkeypatch.setattr(layers, "cpu_vector_isa", lambda: "AVX-512")  # "auto" differs without AVX-512
     monkeypatch.setattr(bench.measure, "CONV_LAYERS", ((4, 8, 16, 1, 3, ((1, 1), (1, 1))),
                                                        (4, 64, 8, 2, 2, ((1, 0), (1, 0)))))
     config = bench.load_config("default:local")

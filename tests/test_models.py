@@ -469,6 +469,7 @@ def test_auto_weight_grad_uses_shift_dy_only_where_measured_faster(monkeypatch):
     always XLA's. Unknown names are refused."""
     r = layers.resolve_weight_grad
     n = layers.SHIFT_DY_MIN_CHANNELS
+    monkeypatch.setattr(layers, "cpu_vector_isa", lambda: "AVX-512")
     with layers.weight_grad_method("auto"):
         assert r((2, 32, 64, n), (3, 3, n, 8), 1) == "shift_dy"
         assert r((2, 32, 64, n - 1), (3, 3, n - 1, 8), 1) == "xla"
@@ -482,6 +483,49 @@ def test_auto_weight_grad_uses_shift_dy_only_where_measured_faster(monkeypatch):
     with pytest.raises(ValueError, match="conv_weight_grad must be one of"):
         with layers.weight_grad_method("fast"):
             pass
+
+
+@pytest.mark.parametrize("isa", ["AVX2", "older"])
+def test_auto_weight_grad_without_avx512_shifts_x_at_stride_2(monkeypatch, isa):
+    """Without AVX-512, "auto" picks "shift_x" for strided convs from SHIFT_X_MIN_CHANNELS input channels and for
+    the 7x7 stem at any batch (the AVX2 measurements); stride 1 and narrow strided convs keep the AVX-512 rule."""
+    r = layers.resolve_weight_grad
+    m = layers.SHIFT_X_MIN_CHANNELS
+    monkeypatch.setattr(layers, "cpu_vector_isa", lambda: isa)
+    with layers.weight_grad_method("auto"):
+        assert r((16, 64, 128, 128), (3, 3, 128, 128), 2) == "shift_x"
+        assert r((2, 32, 64, m), (3, 3, m, 8), 2) == "shift_x"
+        assert r((2, 32, 64, m - 1), (3, 3, m - 1, 8), 2) == "xla"  # pwc_lite's narrow pyramid convs
+        assert r((16, 256, 512, 6), (7, 7, 6, 64), 2) == "shift_x"
+        assert r((2, 256, 512, 6), (7, 7, 6, 64), 2) == "shift_x"
+        assert r((2, 32, 64, m), (3, 3, m, 8), 1) == "shift_dy"
+        assert r((16, 256, 512, 18), (3, 3, 18, 16), 1) == "xla"
+        monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+        assert r((16, 64, 128, 128), (3, 3, 128, 128), 2) == "xla"
+    monkeypatch.setattr(layers, "cpu_vector_isa", lambda: None)  # unknown CPU: the AVX-512 rule
+    with layers.weight_grad_method("auto"):
+        assert r((16, 64, 128, 128), (3, 3, 128, 128), 2) == "xla"
+
+
+def test_cpu_vector_isa_reads_the_flags(monkeypatch, tmp_path):
+    """AVX-512 when avx512f is listed, AVX2 with avx2 only, older without either; None without the file."""
+    import builtins
+    real_open = builtins.open
+    for flags, want in (("fpu sse2 avx avx2 avx512f avx512bw", "AVX-512"), ("fpu sse2 avx avx2 fma", "AVX2"),
+                        ("fpu sse2", "older"), (None, None)):
+        path = tmp_path / "cpuinfo"
+        if flags is None:
+            path.unlink(missing_ok=True)
+        else:
+            path.write_text(f"processor\t: 0\nmodel name\t: Test CPU\nflags\t\t: {flags}\n")
+        monkeypatch.setattr(builtins, "open", lambda f, *a, **k: real_open(path if f == "/proc/cpuinfo" else f,
+                                                                            *a, **k))
+        layers.cpu_vector_isa.cache_clear()
+        try:
+            assert layers.cpu_vector_isa() == want, flags
+        finally:
+            monkeypatch.setattr(builtins, "open", real_open)
+            layers.cpu_vector_isa.cache_clear()
 
 
 def test_im2col_conv_path_matches_numpy(rng, monkeypatch):

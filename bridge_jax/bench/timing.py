@@ -17,6 +17,8 @@ from typing import Any, Callable
 
 import jax
 
+from bridge_jax.models import layers
+
 
 class BenchError(Exception):
     """Bad input or a failed measurement; the CLI prints it as one line and exits 2."""
@@ -140,15 +142,7 @@ def cpu_model() -> str:
 def cpu_isa() -> str | None:
     """The widest x86 vector ISA the CPU reports ("AVX-512", "AVX2" or "older"; None off Linux/x86): these
     VMs come as both kinds, and XLA:CPU's convolutions (and so every ratio to PyTorch) differ between them."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    return "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "older"
-    except OSError:
-        pass
-    return None
+    return layers.cpu_vector_isa()
 
 
 def machine() -> str:

@@ -148,13 +148,20 @@ WEIGHT_GRAD_METHODS = ("auto", "xla", "shift_dy", "shift_x", "xla_chunks")
 - "auto" (the default), on the CPU backend: "shift_dy" for stride-1 convolutions with at least
   `SHIFT_DY_MIN_CHANNELS` input channels; "xla_chunks" for the large-kernel stem on the image pair (kernel
   >= 5, at most `STEM_MAX_CHANNELS` input channels), whose backward-filter convolution takes 1.27 s for 16
-  pair-forwards at 512x256 in one piece and 0.43 s in chunks of 2; "xla" for everything else. On GPU/TPU
-  always "xla" (cuDNN's backward is fast).
+  pair-forwards at 512x256 in one piece and 0.43 s in chunks of 2; "xla" for everything else. CPUs without
+  AVX-512 (`cpu_vector_isa`) differ at stride 2: there "shift_x" for strided convolutions with at least
+  `SHIFT_X_MIN_CHANNELS` input channels and for the stem (measured on a 2-core AVX2-only AMD EPYC VM,
+  2026-12-01, batch 16: 128->128 at 64x128 2.66 -> 0.55 s, 256->256 0.66 -> 0.34 s, 512->512 0.34 -> 0.27 s,
+  the 7x7 stem 5.65 s (xla), 5.33 s (xla_chunks), 2.67 s (shift_x); at stride 1 the AVX-512 rule held there
+  too). On GPU/TPU always "xla" (cuDNN's backward is fast).
 
 The forward pass and the input gradient are XLA's in every method; the gradients agree to float32 rounding.
 `Network(conv_weight_grad=...)` (config key `conv_weight_grad`) picks the method for a network's forward."""
 
 SHIFT_DY_MIN_CHANNELS = 64
+SHIFT_X_MIN_CHANNELS = 64
+"""Without AVX-512, "auto" computes strided convolutions' weight gradients by "shift_x" from this many input
+channels (the smallest measured there was 128; pwc_lite's narrower strided pyramid convs keep XLA's)."""
 STEM_MAX_CHANNELS = 8
 WEIGHT_GRAD_CHUNK = 2
 
@@ -184,9 +191,28 @@ def resolve_weight_grad(x_shape, k_shape, stride: int, method: str | None = None
         return "xla"
     if stride == 1 and x_shape[3] >= SHIFT_DY_MIN_CHANNELS:
         return "shift_dy"
-    if min(k_shape[:2]) >= 5 and x_shape[3] <= STEM_MAX_CHANNELS and x_shape[0] > WEIGHT_GRAD_CHUNK:
+    stem = min(k_shape[:2]) >= 5 and x_shape[3] <= STEM_MAX_CHANNELS
+    if cpu_vector_isa() in ("AVX2", "older") and stride > 1 and (stem or x_shape[3] >= SHIFT_X_MIN_CHANNELS):
+        return "shift_x"
+    if stem and x_shape[0] > WEIGHT_GRAD_CHUNK:
         return "xla_chunks"
     return "xla"
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_vector_isa() -> str | None:
+    """The widest x86 vector ISA this CPU reports: "AVX-512", "AVX2" or "older"; None where /proc/cpuinfo is
+    missing (not Linux) or has no x86 flags (e.g. ARM). XLA:CPU's convolution kernels differ between the kinds,
+    so the fastest weight-gradient method does too (`resolve_weight_grad`). None keeps the AVX-512 rule."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "older"
+    except OSError:
+        pass
+    return None
 
 
 def _lax_conv(x, kernel, stride: int, padding, dilation: int):
