@@ -16,7 +16,7 @@ from tests.train_helpers import REPO
 BANNER = (b"E1202 00:27:29.247311    7061 slow_operation_alarm.cc:73] \n"
           b"********************************\n"
           b"[Compiling module jit_train_step for CPU] Very slow compile? If you want to file a bug, run with envvar "
-          b"XLA_FLAGS=--xla_dump_to=/tmp/foo and attach the results.\n"
+          b"XLA_FLAGS=--xla_dump_to=DIR and attach the results.\n"
           b"********************************\n")
 OTHER_ALARM = (b"E1202 00:27:30.000001    7061 slow_operation_alarm.cc:65] Constant folding an instruction is "
                b"taking > 1s:\n")
