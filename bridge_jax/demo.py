@@ -19,7 +19,7 @@ import os
 import sys
 import time
 
-from bridge_jax import cli, evaluate, inference, setup, train
+from bridge_jax import cli, compile_cache, console, evaluate, inference, setup, train
 from bridge_jax.configs import demo as demo_config
 from bridge_jax.data import synthetic
 
@@ -29,15 +29,15 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     """Train + validation set + evaluation; returns a summary dict (paths and headline numbers).
 
     `overrides`: {"dotted.key": value} applied to the demo config. `enable_cache`: turn on the persistent
-    compilation cache in `<workdir>/xla_cache` (what the command line does; JAX keeps the first cache folder of a
-    process, so library callers leave it off)."""
+    compilation cache of `config.compilation_cache_dir` (`compile_cache.enable`; what the command line does; JAX
+    keeps the first cache folder of a process, so library callers leave it off)."""
     workdir = os.path.abspath(workdir)
     config = demo_config.get_config(config_arg)
     config.update_from_flattened_dict(dict(overrides or {}))
     demo_run = setup.parse(config)
     train_dir = os.path.join(workdir, "train")
-    if enable_cache:  # the demo's config is fixed and checked above: <workdir>/xla_cache serves all its steps
-        train.enable_compilation_cache(demo_run.compilation_cache_dir, workdir)
+    if enable_cache:  # the demo's config is fixed and checked above: one cache serves training and evaluation
+        compile_cache.enable(demo_run.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
 
@@ -98,6 +98,9 @@ def build_parser():
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # XLA's "Very slow compile?" banner goes to the training workdir's xla.log, not into the progress bar
+    console.install(os.path.join(os.path.abspath(args.workdir), "train", train.XLA_LOG),
+                    enabled=not cli.debug_enabled(args))
     try:
         summary = run(args.workdir, config_arg="short" if args.short else None, enable_cache=True)
     except train.TrainingDiverged as e:

@@ -39,7 +39,7 @@ from typing import Any, Optional
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files, inference
+from bridge_jax import cli, compile_cache, console, files, inference
 from bridge_jax.eval.baselines import opencv_method, zero_method
 from bridge_jax.eval.datasets import DATASETS, EvaluationError, Frame, list_frames, load_frame
 from bridge_jax.eval.methods import ModelMethod
@@ -150,13 +150,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baselines", dest="no_baselines", action="store_false", default=False,
                    help="run the baselines (the default; undoes an earlier --no-baselines)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    compile_cache.add_option(p)
     cli.add_debug_flag(p)
     return p
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
+    console.install(enabled=not cli.debug_enabled(args))  # XLA's slow-compile banner stays out of the console
     try:
+        compile_cache.enable(args.compilation_cache)
         if args.batch < 1:
             raise EvaluationError(f"--batch must be >= 1, got {args.batch}")
         if args.max_frames is not None and args.max_frames < 1:

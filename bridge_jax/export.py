@@ -28,7 +28,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from bridge_jax import cli, files, inference
+from bridge_jax import cli, compile_cache, files, inference
 
 
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
@@ -79,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", choices=list(inference.PAIR_KINDS), default="flow",
                     help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
                          "stereo: left/right pairs); a shared network is the same for both")
+    compile_cache.add_option(ap)
     cli.add_debug_flag(ap)
     return ap
 
@@ -86,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        compile_cache.enable(args.compilation_cache)
         if args.batch < 1:   # checked before the (slow) checkpoint load
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
         predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,

@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, files, flowio, inference, metrics, visualize
+from bridge_jax import cli, compile_cache, console, files, flowio, inference, metrics, visualize
 from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -702,6 +702,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KITTI benchmark of the submission (default: 2015 if --data-dir has image_2/, else 2012)")
     # store_true into no_progress (not store_false into progress): the help would otherwise show "(default: True)"
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    compile_cache.add_option(p)
     cli.add_debug_flag(p)
     return p
 
@@ -718,7 +719,9 @@ def parse_raw(text: str) -> list[str]:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
+    console.install(enabled=not cli.debug_enabled(args))  # XLA's slow-compile banner stays out of the console
     try:
+        compile_cache.enable(args.compilation_cache)
         if args.batch < 1:
             raise PredictError(f"--batch must be >= 1, got {args.batch}")
         raw = parse_raw(args.raw)

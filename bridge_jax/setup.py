@@ -122,7 +122,7 @@ class RunOptions:
     separate_networks: bool = False  # two networks (stereo, flow): the paper's no-sharing ablation
     micro_batch: int = -1  # pair-forwards per device per call: 0 = one jitted step, -1 = auto (2 on CPU)
     init_from: str = ""  # initial params: a checkpoint folder or a shipped model name ("" = random init)
-    compilation_cache_dir: str = "auto"  # XLA compilation cache: auto = <workdir>/xla_cache, "" = off, or a folder
+    compilation_cache_dir: str = "auto"  # XLA cache: auto = per user, workdir = <workdir>/xla_cache, "" = off, a folder
     num_devices: int = -1  # devices of the ('data',) mesh: -1 = all, N = the first N (single process)
 
     def __post_init__(self):
@@ -132,8 +132,8 @@ class RunOptions:
         _check(self.remat in REMAT_POLICIES, "", "remat", f"one of {sorted(REMAT_POLICIES)}", self.remat)
         _check(self.conv_weight_grad in WEIGHT_GRAD_METHODS, "", "conv_weight_grad",
                f"one of {list(WEIGHT_GRAD_METHODS)}", self.conv_weight_grad)
-        _check(isinstance(self.compilation_cache_dir, str), "", "compilation_cache_dir", "a folder, 'auto' or '' (off)",
-               self.compilation_cache_dir)
+        _check(isinstance(self.compilation_cache_dir, str), "", "compilation_cache_dir",
+               "a folder, 'auto', 'workdir' or '' (off)", self.compilation_cache_dir)
         _check(isinstance(self.init_from, str), "", "init_from", "a checkpoint folder, a model name or ''",
                self.init_from)
 

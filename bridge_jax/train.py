@@ -30,7 +30,14 @@ Workdir layout (`bridge_jax.workdir`):
     status.json                     running | finished | interrupted | aborted | failed (with the reason), the
                                     step, steps/s, last checkpoint and a heartbeat, rewritten at every log
                                     interval; `bridge-train --status WORKDIR` prints it and says whether the
-                                    run is stale (no heartbeat for 3 periods: its process is gone)
+                                    run is stale (no heartbeat for 3 periods: its process is gone);
+                                    "first_step_s" / "compile_s": time to this process's first step
+    xla.log                         XLA's "Very slow compile?" banners, kept out of the console (not with
+                                    --debug)
+
+XLA keeps its compiled train step in a per-user cache folder (`--config.compilation_cache_dir`: "auto" =
+$BRIDGE_JAX_CACHE_DIR, else ~/.cache/bridge_jax/xla; "workdir" = <workdir>/xla_cache; "" = off), so a resumed
+run, or the next run of the same shapes, skips most of the compile.
 
 Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
 for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
@@ -54,7 +61,8 @@ import ml_collections
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import checkpointing, cli, configs, files, inference, models, network, setup, train_step
+from bridge_jax import (checkpointing, cli, compile_cache, configs, console, files, inference, models, network, setup,
+                        train_step)
 from bridge_jax import workdir as workdir_mod, zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
@@ -70,6 +78,7 @@ class TrainingDiverged(RuntimeError):
     """Too many non-finite steps in a row: reported as one line, exit code 1."""
 
 
+XLA_LOG = "xla.log"  # in the workdir: what `console` keeps out of the console (XLA's slow-compile banners)
 EXIT_FINISHED, EXIT_DIVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 75  # 75 = EX_TEMPFAIL: "try again"
 
 
@@ -377,8 +386,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     """Trains (or resumes) in `workdir`; returns a summary dict (final step, last metrics, validation, state).
 
     `config`: a training config, or the `setup.Run` parsed from one. `enable_cache`: turn on the persistent
-    compilation cache (`enable_compilation_cache`) once the inputs are checked (the command line does; a
-    library caller usually does not). `config_name`: how the config was named, for the start-up line."""
+    compilation cache (`compile_cache.enable` with `config.compilation_cache_dir`) once the inputs are checked
+    (the command line does; JAX keeps the first cache folder of a process, so a library caller usually does
+    not). `config_name`: how the config was named, for the start-up line."""
     ##### Check the input: nothing in the workdir is touched before this section passes ####################
     run = setup.parse(config)
     proc, nproc = jax.process_index(), jax.process_count()
@@ -389,7 +399,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     steps_per_epoch, num_steps = run.steps(dataset_size)
     val_data = _validation_data(run)
     if enable_cache:
-        enable_compilation_cache(run.compilation_cache_dir, workdir)
+        compile_cache.enable(run.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
 
     ##### Create model & optimizer ############################################################################
     init_rng, state_rng = jax.random.split(jax.random.key(run.seed))
@@ -441,7 +451,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
             return res
 
         ##### Train loop ###########################################################################################
-        step, last_metrics, val, interrupted = start_step, {}, {}, False
+        step, last_metrics, val, interrupted, first_step = start_step, {}, {}, False, True
         guard, meter = _NonFiniteGuard(loop.max_nonfinite_in_row, logger, ckpt, is_main), _Throughput(run.global_batch)
         finished_before = resuming and start_step >= num_steps
         status = "failed"
@@ -458,7 +468,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                         interrupted = True
                         break
                     local = np.asarray(next(data_iter)["cycle"], np.float32)
-                    state, metrics = step_fn(state, _global_array(batch_sharding, local, global_shape))
+                    if first_step:
+                        state, metrics = _first_step(step_fn, state, _global_array(batch_sharding, local, global_shape),
+                                                     run, run_status, is_main)
+                        first_step = False
+                    else:
+                        state, metrics = step_fn(state, _global_array(batch_sharding, local, global_shape))
                     metrics = jax.device_get(metrics)
                     if guard.skipped(step, metrics):
                         continue
@@ -522,6 +537,25 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         raise
 
 
+def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is_main: bool):
+    """The process's first train step, which compiles: announced in one line before, and timed (status.json
+    "first_step_s": seconds from the start of the process to the end of this step; "compile_s": of those, the
+    seconds JAX spent tracing, lowering and compiling or loading from the cache). Waits for the step to finish,
+    which later steps never do here."""
+    if is_main:
+        cache = f"first run only: {compile_cache.describe()}" if compile_cache.active_dir() else compile_cache.describe()
+        tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
+    with compile_cache.CompileClock() as clock:
+        state, metrics = step_fn(state, batch)
+        jax.block_until_ready((state, metrics))
+    first_step_s = compile_cache.process_age_s()
+    run_status.update(first_step_s=round(first_step_s, 2), compile_s=round(clock.seconds, 2))
+    if is_main:
+        tqdm.write(f"train step ready after {first_step_s:.1f} s (compiling {clock.seconds:.1f} s of it)",
+                   file=sys.stdout)
+    return state, metrics
+
+
 def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:
     devices = f"{len(run.devices)} {run.devices[0].platform} device{'s' if len(run.devices) > 1 else ''}"
     data = run.data.source + (f" {run.data.data_dir}" if run.data.source != "synthetic" and run.data.data_dir else "")
@@ -541,27 +575,6 @@ def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, 
 # ##########################################################################################################
 # Command line
 # ##########################################################################################################
-
-def enable_compilation_cache(path: str, workdir: str) -> str | None:
-    """Turns on JAX's persistent compilation cache for this process (`config.compilation_cache_dir`).
-
-    `path`: "auto" = <workdir>/xla_cache, "" = off, else a folder. Only the command-line entry points call this:
-    JAX opens the cache at the process's first compilation and keeps it, so a library caller (or a test running
-    several workdirs in one process) configures it itself. Returns the cache folder, or None when off. An
-    environment variable JAX_COMPILATION_CACHE_DIR wins.
-    """
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return os.environ["JAX_COMPILATION_CACHE_DIR"]
-    if not path:
-        return None
-    if path == "auto":
-        path = os.path.join(workdir, "xla_cache")
-    path = os.path.abspath(os.path.expanduser(path))
-    jax.config.update("jax_compilation_cache_dir", path)
-    # Only executables that took >= 1 s to compile are stored (the train step, eval/inference functions).
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    return path
-
 
 def _config_epilog() -> str:
     lines = ["Configs shipped in the package (--config=NAME[:arg]):"]
@@ -674,6 +687,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     _set_verbosity(args.verbosity)
     if not args.debug:  # a failed checkpoint write is one line, not orbax's and asyncio's tracebacks too
         checkpointing.quiet_save_failure_noise()
+    # XLA's "Very slow compile?" banner goes to <workdir>/xla.log, not into the progress bar
+    console.install(os.path.join(os.path.abspath(args.workdir), XLA_LOG), enabled=not cli.debug_enabled(args))
     try:
         config = load_config(args.config, items)
         result = train_and_evaluate(config, args.workdir, enable_cache=True, config_name=args.config)

@@ -14,8 +14,10 @@ training works.
 
 status.json holds "status": "running" | "finished" | "interrupted" (a signal; checkpoint saved) | "aborted" (a
 second signal: exited at once, nothing saved) | "failed" (an error, its first line in "reason"), the "step"
-reached, "num_steps", "steps_per_s", "last_checkpoint", "started", "pid", "heartbeat" (a time) and
-"stale_after_s". A running trainer rewrites it (atomically) at every log interval and, from a background
+reached, "num_steps", "steps_per_s", "last_checkpoint", "started", "pid", "heartbeat" (a time),
+"stale_after_s", and once this process's first step is done "first_step_s" (seconds from the start of the
+process to the end of that step: the time to a first step, compile included) and "compile_s" (of those, the
+seconds spent tracing and compiling, or loading from the compilation cache). A running trainer rewrites it (atomically) at every log interval and, from a background
 thread, at least every `HEARTBEAT_S` seconds (so a long compilation or validation does not look dead). The
 rule for readers: a "running" status whose heartbeat is older than "stale_after_s" (= `STALE_BEATS`
 heartbeat periods) belongs to a process that is gone (killed, or its machine lost).

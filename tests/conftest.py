@@ -1,10 +1,20 @@
-"""Test set-up: fake 8 CPU devices so that sharded code is testable on any machine.
+"""Test set-up: fake 8 CPU devices so that sharded code is testable on any machine, and one compilation cache
+folder for the session.
 
-This must run before JAX initialises its backends, hence at conftest import time.
+This must run before JAX initialises its backends (and before any test starts a subprocess), hence at conftest
+import time.
 """
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# The command-line entry points keep compiled executables in the user's cache folder (bridge_jax.compile_cache):
+# the tests use one folder of their own instead, shared by the subprocesses they start, removed at the end.
+_SESSION_CACHE = None
+if "BRIDGE_JAX_CACHE_DIR" not in os.environ:
+    _SESSION_CACHE = tempfile.mkdtemp(prefix="bridge_jax_test_xla_")
+    os.environ["BRIDGE_JAX_CACHE_DIR"] = _SESSION_CACHE
 
 import jax  # noqa: E402
 
@@ -36,3 +46,8 @@ def tiny_checkpoint(tmp_path_factory):
     d = str(tmp_path_factory.mktemp("ckpt") / "tiny")
     checkpointing.save_params(d, params, cfg)
     return d
+
+
+def pytest_sessionfinish(session, exitstatus):  # noqa: ARG001
+    if _SESSION_CACHE is not None:
+        shutil.rmtree(_SESSION_CACHE, ignore_errors=True)

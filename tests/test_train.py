@@ -18,7 +18,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from bridge_jax import checkpointing, setup, train, train_step
+from bridge_jax import checkpointing, compile_cache, setup, train, train_step
 from bridge_jax.configs import default as default_config
 from bridge_jax.micro_batch import MicroBatchedStep
 from bridge_jax.workdir import STATUS_JSON
@@ -437,23 +437,27 @@ def test_two_process_distributed_run_matches_single_process(tmp_path):
 
 
 def test_compilation_cache_folder_choice(tmp_path, monkeypatch):
-    """The CLI's persistent compile cache: <workdir>/xla_cache by default, off with "", a given folder, and
-    the user's JAX_COMPILATION_CACHE_DIR wins. jax.config.update is recorded, not applied (process-global)."""
+    """The trainer's persistent compile cache: the per-user folder by default ("auto"), <workdir>/xla_cache with
+    "workdir", off with "", a given folder, and the user's JAX_COMPILATION_CACHE_DIR wins. jax.config.update is
+    recorded, not applied (process-global)."""
     calls = {}
-    monkeypatch.setattr(train.jax.config, "update", lambda name, value: calls.__setitem__(name, value))
+    monkeypatch.setattr(compile_cache.jax.config, "update", lambda name, value: calls.__setitem__(name, value))
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("BRIDGE_JAX_CACHE_DIR", str(tmp_path / "user_cache"))
     wd = str(tmp_path / "wd")
     cfg = default_config.get_config("local")
     assert cfg.compilation_cache_dir == "auto"
-    assert train.enable_compilation_cache(cfg.compilation_cache_dir, wd) == os.path.join(wd, "xla_cache")
+    assert compile_cache.enable(cfg.compilation_cache_dir, wd) == str(tmp_path / "user_cache")
+    assert calls["jax_compilation_cache_dir"] == str(tmp_path / "user_cache") and not os.path.exists(wd)
+    assert compile_cache.enable("workdir", wd) == os.path.join(wd, "xla_cache")
     assert calls["jax_compilation_cache_dir"] == os.path.join(wd, "xla_cache")
     calls.clear()
-    assert train.enable_compilation_cache("", wd) is None and not calls
-    assert train.enable_compilation_cache(str(tmp_path / "elsewhere"), wd) == str(tmp_path / "elsewhere")
+    assert compile_cache.enable("", wd) is None and not calls
+    assert compile_cache.enable(str(tmp_path / "elsewhere"), wd) == str(tmp_path / "elsewhere")
     calls.clear()
     # a config file that sets a non-string is refused when the config is parsed, before anything runs
     bad = ml_collections.ConfigDict(dict(cfg.to_dict(), compilation_cache_dir=5))
     with pytest.raises(train.ConfigError, match="compilation_cache_dir"):
         setup.parse(bad)
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/env/cache")
-    assert train.enable_compilation_cache("auto", wd) == "/env/cache" and not calls
+    assert compile_cache.enable("auto", wd) == "/env/cache" and not calls

@@ -17,7 +17,7 @@ import pytest
 
 from bridge_jax import train, train_step
 from bridge_jax.workdir import STATUS_JSON, truncate_metrics
-from tests.train_helpers import enable_compilation_cache, subprocess_env, tiny_config
+from tests.train_helpers import CACHE_DIR, enable_compilation_cache, subprocess_env, tiny_config
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -88,7 +88,7 @@ def test_help_shows_examples_configs_sources_and_layouts(capsys):
 
 def test_xla_cache_is_not_created_when_the_input_check_fails(tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(train, "enable_compilation_cache", lambda *a: calls.append(a))
+    monkeypatch.setattr(train.compile_cache, "enable", lambda *a, **k: calls.append(a))
     with pytest.raises(train.ConfigError):
         train.train_and_evaluate(tiny_config(global_batch=3), str(tmp_path / "wd"), enable_cache=True)
     assert calls == [] and not (tmp_path / "wd").exists()
@@ -208,7 +208,14 @@ def test_cli_by_name_from_another_directory_is_quiet_and_says_what_it_runs(tmp_p
     start = [line for line in r.stdout.splitlines() if line.startswith("train: ")]
     assert len(start) == 1 and "config default:local" in start[0] and "data synthetic: 8 cycles" in start[0]
     assert "2 cpu devices" in start[0] and str(wd) in start[0]
-    assert json.load(open(wd / STATUS_JSON))["status"] == "finished"
+    status = json.load(open(wd / STATUS_JSON))
+    assert status["status"] == "finished"
+    # one line before the first (compiling) step naming the cache, one after it with the time to that step
+    assert f"compiling the train step for 64x128 (first run only: cached in {CACHE_DIR})" in r.stdout.splitlines()
+    ready = [line for line in r.stdout.splitlines() if line.startswith("train step ready after ")]
+    assert len(ready) == 1 and f"{status['first_step_s']:.1f} s" in ready[0]
+    # the time to the first step counts from the start of the process: Python and JAX's import come first
+    assert status["first_step_s"] > 1.0 and 0 < status["compile_s"] < status["first_step_s"]
 
 
 # --------------------------------------------------------------------------------------------------------

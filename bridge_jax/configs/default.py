@@ -47,8 +47,9 @@ def get_config(arg=None):
     # kernel tap where that is faster than XLA's own backward (>= 64 input channels) and XLA's in batch chunks for
     # the 7x7 stem, XLA's elsewhere and on GPU/TPU; same gradients to float32 rounding. `micro_batch` -1 = auto: 2
     # on CPU, where a Python loop of small jitted calls is faster and much leaner than one big jit, 0 elsewhere.
-    # `compilation_cache_dir` "auto" lets a resumed run (after SIGTERM, preemption or a crash) reuse the compiled
-    # train step; JAX_COMPILATION_CACHE_DIR, if set, wins.
+    # `compilation_cache_dir` "auto" (the per-user folder of every command, bridge_jax.compile_cache) lets a
+    # resumed run (after SIGTERM, preemption or a crash) or the next run of the same shapes reuse the compiled
+    # train step; "workdir" keeps it in <workdir>/xla_cache; JAX_COMPILATION_CACHE_DIR, if set, wins.
     c.update(dataclasses.asdict(RunOptions()))
 
     # Network: every key of models.model_config (so any of them can be overridden from the command line).

@@ -1,0 +1,187 @@
+"""Time to a first answer: the persistent XLA compilation cache the command-line entry points share, and the
+clocks that say how long a first step took.
+
+Compiling a network is most of the wait before a first prediction or train step (10-60 s on a CPU). JAX can
+keep compiled executables on disk; `enable` turns that on in one folder per user, so that `bridge-predict`
+after `bridge-train` (or a resumed run, or the second `bridge-evaluate`) loads what an earlier process compiled:
+
+    BRIDGE_JAX_CACHE_DIR        if set: the folder ("" = no cache)
+    $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla
+
+JAX's own JAX_COMPILATION_CACHE_DIR, if set, wins. The folder is trimmed to `MAX_CACHE_BYTES` at start-up
+(least recently used entries first). A folder that cannot be written (a read-only home) is one warning, and
+the command runs without a cache. `bridge-bench` never calls `enable`: it measures compile times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+import warnings
+
+import jax
+
+ENV = "BRIDGE_JAX_CACHE_DIR"
+MIN_COMPILE_TIME_S = 0.5
+"""Executables that compiled faster than this are not stored. The networks' forward passes take 10-20 s to
+compile on 2 CPU cores and the train steps longer; everything else (resizes, casts, metrics) compiles in
+under 0.02 s and would only fill the folder with entries that load about as slowly as they compile."""
+MAX_CACHE_BYTES = 2 * 2**30
+"""The folder is trimmed to this size at start-up. (JAX's own `jax_compilation_cache_max_size` evicts on every
+write but needs the `filelock` package, which bridge_jax does not depend on.)"""
+OPTION_HELP = ("persistent XLA compilation cache folder, so that a later run skips most of the compile: 'auto' = "
+               f"${ENV} if set, else $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla; '' = off "
+               "(JAX_COMPILATION_CACHE_DIR, if set, wins)")
+
+
+class CacheWarning(UserWarning):
+    """The cache folder cannot be used; the command runs without it (printed once, as one line)."""
+
+
+def default_cache_dir() -> str | None:
+    """The per-user cache folder ("auto"): $BRIDGE_JAX_CACHE_DIR if set ("" = None, no cache), else
+    $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla."""
+    if ENV in os.environ:
+        return os.path.abspath(os.path.expanduser(os.environ[ENV])) if os.environ[ENV] else None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.abspath(os.path.join(base, "bridge_jax", "xla"))
+
+
+def resolve(path: str, workdir: str | None = None, option: str = "--compilation-cache") -> str | None:
+    """The folder `path` stands for: "auto" = `default_cache_dir()`, "workdir" = `<workdir>/xla_cache` (a
+    training run's own cache, as before the per-user one), "" = None (off), anything else a folder. ValueError
+    naming `option` for "workdir" without a workdir."""
+    if not path:
+        return None
+    if path == "auto":
+        return default_cache_dir()
+    if path == "workdir":
+        if not workdir:
+            raise ValueError(f"{option}=workdir: only training has a workdir; give a folder, 'auto' or '' (off)")
+        return os.path.join(os.path.abspath(workdir), "xla_cache")
+    return os.path.abspath(os.path.expanduser(path))
+
+
+def enable(path: str = "auto", workdir: str | None = None, option: str = "--compilation-cache") -> str | None:
+    """Turns on JAX's persistent compilation cache for this process in the folder `path` stands for (see
+    `resolve`); returns that folder, or None when off. JAX_COMPILATION_CACHE_DIR, if set, wins (returned as is).
+
+    Call it before the first compilation: JAX opens the cache once, at the process's first compile that has a
+    cache folder, and keeps it. A folder that cannot be created or written warns once and leaves the cache off.
+    """
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]
+    folder = resolve(path, workdir, option)
+    if folder is None:
+        return None
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):  # writable? (a read-only home passes makedirs of an existing dir)
+            pass
+    except OSError as e:
+        warnings.warn(f"compilation cache {folder}: {e.strerror or e}; running without it (set {option}='' or "
+                      f"{ENV}='' to silence this)", CacheWarning, stacklevel=2)
+        return None
+    trim(folder, MAX_CACHE_BYTES)
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
+    return folder
+
+
+def trim(folder: str, max_bytes: int) -> int:
+    """Deletes the least recently used cache entries (JAX's `*-cache` files) of `folder` until the rest holds
+    at most `max_bytes`; returns how many were deleted. Errors (an entry another process just removed) are
+    skipped: trimming is housekeeping, never a reason to fail."""
+    entries = []
+    try:
+        with os.scandir(folder) as it:
+            for e in it:
+                if e.name.endswith("-cache") and e.is_file(follow_symlinks=False):
+                    st = e.stat(follow_symlinks=False)
+                    entries.append((max(st.st_atime, st.st_mtime), st.st_size, e.path))
+    except OSError:
+        return 0
+    total, deleted = sum(size for _, size, _ in entries), 0
+    for _, size, path in sorted(entries):
+        if total <= max_bytes:
+            break
+        try:
+            os.remove(path)
+        except OSError:
+            continue
+        total -= size
+        deleted += 1
+    return deleted
+
+
+def active_dir() -> str | None:
+    """The cache folder JAX uses in this process (set by `enable`, JAX_COMPILATION_CACHE_DIR or a library
+    caller), or None."""
+    return jax.config.jax_compilation_cache_dir or None
+
+
+def describe() -> str:
+    """"cached in FOLDER" or "compilation cache off", for one-line messages before a long compile."""
+    folder = active_dir()
+    return f"cached in {folder}" if folder else "compilation cache off"
+
+
+def add_option(parser: argparse.ArgumentParser) -> None:
+    """`--compilation-cache DIR` (default auto) on a command that compiles a network."""
+    parser.add_argument("--compilation-cache", default="auto", metavar="DIR", help=OPTION_HELP)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Clocks: since the process began, and the seconds spent tracing, lowering and compiling
+# ----------------------------------------------------------------------------------------------------------
+
+_IMPORTED = time.time()
+
+
+def process_age_s() -> float:
+    """Seconds since this process started: from /proc on Linux (interpreter start-up and imports included),
+    elsewhere since this module was imported."""
+    try:
+        with open("/proc/self/stat") as f:
+            # the command name (field 2) may hold spaces: count the fields after its closing parenthesis;
+            # field 22 is the start time in clock ticks after boot
+            start_ticks = int(f.read().rpartition(")")[2].split()[19])
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return time.time() - _IMPORTED
+
+
+_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                   "/jax/core/compile/backend_compile_duration")
+_CLOCKS: list["CompileClock"] = []
+_listening = False
+
+
+def _on_duration(event: str, duration: float, **_kw) -> None:
+    if event in _COMPILE_EVENTS:
+        for clock in _CLOCKS:
+            clock.seconds += duration
+
+
+class CompileClock:
+    """Seconds JAX spent tracing, lowering and compiling (or loading from the cache) while active, from
+    `jax.monitoring` events; a context manager."""
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def __enter__(self) -> "CompileClock":
+        global _listening
+        if not _listening:  # one listener for the process: jax.monitoring has no cheap way to remove one
+            jax.monitoring.register_event_duration_secs_listener(_on_duration)
+            _listening = True
+        _CLOCKS.append(self)
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        _CLOCKS.remove(self)
+        return False
