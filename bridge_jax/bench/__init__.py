@@ -17,5 +17,5 @@ from bridge_jax.bench.records import REQUIRED_FIELDS, table
 from bridge_jax.bench.timing import BenchError, RecompilationError, time_calls
 
 __all__ = ["PROCESS_WHATS", "WHATS", "load_config", "main", "run", "PEAK_TFLOPS", "known_peak_tflops", "CONV_LAYERS",
-           "bench_run", "build_train_step", "measure_conv_backward", "random_maps", "REQUIRED_FIELDS", "table", "BenchError",
-           "RecompilationError", "time_calls"]
+           "bench_run", "build_train_step", "measure_conv_backward", "random_maps", "REQUIRED_FIELDS", "table",
+           "BenchError", "RecompilationError", "time_calls"]

@@ -105,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--what", default="train_step", choices=WHATS + PROCESS_WHATS + ("all",),
                    help=f"what to measure (all: each of {', '.join(WHATS)} in its own subprocess)")
     p.add_argument("--config", default=None,
-                   help="config name (default, full2, demo, ...[:arg]) or .py path (default: default; first_step: demo)")
+                   help="config name (default, full2, demo, ...[:arg]) or .py path "
+                        "(default: default; first_step: demo)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override, e.g. loss.two_warp=full2")
     p.add_argument("--height", type=int, default=None, help="working height (default: the config's)")
     p.add_argument("--width", type=int, default=None, help="working width (default: the config's)")

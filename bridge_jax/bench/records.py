@@ -102,7 +102,8 @@ def _timed_table(records: Sequence[dict]) -> str:
             "GFLOP", "TFLOP/s", "MFU", "retraced", "others' CPU")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
-        row = (r["what"], r["variant"], _shape(r), r.get("dtype"), _fmt(r.get("compile_s")), _fmt(r.get("median_s"), ".4g"),
+        row = (r["what"], r["variant"], _shape(r), r.get("dtype"), _fmt(r.get("compile_s")),
+               _fmt(r.get("median_s"), ".4g"),
                _fmt(r.get("min_s"), ".4g"), _fmt(r.get("max_s"), ".4g"), _fmt(r.get("peak_rss_gib")),
                _fmt(r["flops"] / 1e9 if r.get("flops") else None, ".5g"), _fmt(r.get("achieved_tflops"), ".4g"),
                _fmt(r.get("mfu"), ".1%") if r.get("mfu") is not None else "-", _fmt(r.get("recompiled")),
