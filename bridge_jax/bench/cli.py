@@ -1,4 +1,5 @@
-r"""Benchmarks: train step, inference, loss alone and the input pipeline, measured the same way every time.
+r"""Benchmarks: train step, inference, loss alone, the input pipeline and the time a fresh process takes to a first
+prediction or train step, measured the same way every time.
 
     bridge-bench --what train_step --config default --micro-batch 0,2 --repeats 3 --warmup 1
     bridge-bench --what inference --config default --repeats 10
@@ -6,8 +7,10 @@ r"""Benchmarks: train step, inference, loss alone and the input pipeline, measur
     bridge-bench --what all --config default:local --json out.jsonl
     bridge-bench --what train_step --config default --peer      # + upstream PyTorch beside it
     bridge-bench --what conv_backward --config default --conv-batch 16   # weight-grad methods
+    bridge-bench --what first_prediction --checkpoint demo --repeats 3   # a fresh predict process, cold/warm cache
+    bridge-bench --what first_step --config demo --height 128 --width 256   # a fresh trainer to its first step
 
-Every measurement reports: compile time, median / min / max wall time per call over `--repeats` calls after
+Every in-process measurement reports: compile time, median / min / max wall time per call over `--repeats` calls after
 `--warmup` calls (results are `block_until_ready`-ed, so the times are real), peak host RSS (`ru_maxrss` of the
 process, and the peak sampled during the timed calls), device memory where the backend reports it (GPU/TPU
 `memory_stats`; XLA's temp-buffer size from `memory_analysis` where a single executable exists), FLOPs from XLA's
@@ -20,6 +23,17 @@ record says so and the CLI exits with status 3.
 Output: a table, then one JSON line per measurement (device kind, jax version, shapes, dtype, UTC date, ...),
 also appended to `--json OUT` (JSON lines; written to a temporary name and renamed). `--what all` runs each
 measurement in a fresh subprocess so that each peak RSS is that measurement's own.
+
+Time to a first answer (`bridge_jax.bench.first`): `first_prediction` times a fresh `python -m bridge_jax.predict`
+on one 512x256 photo pair (`--checkpoint`, default demo; `--working-size` passed through), `first_step` a fresh
+`python -m bridge_jax.train` (default --config=demo at 128x256; `--height`, `--width`, `--cycles`, `--dtype`,
+`--set` passed through as `--config.` options) for 2 steps, also reading `first_step_s` from its status.json.
+Each runs with a cold persistent compilation cache (a fresh empty BRIDGE_JAX_CACHE_DIR for each of `--repeats`
+runs, default 1 for these two), a warm one (the same folder again) and, for first_prediction, once with the cache
+off (BRIDGE_JAX_CACHE_DIR=""); JAX_COMPILATION_CACHE_DIR is removed from the child's environment. The records have
+cold_s / warm_s / off_s (median wall seconds of the whole process), the machine and the CPU's ISA, but not the
+in-process fields (compile_s, FLOPs, ...). `--what all` leaves them out: they take minutes and measure processes,
+not this one; ask for each by name.
 
 Train step variants: `--micro-batch 0` is the plain step (`train_step.make_train_step`: one jit, whole batch);
 `--micro-batch k` is the maps-first micro-batched step (`micro_batch.MicroBatchedStep`, k pair-forwards per call;
@@ -50,13 +64,16 @@ import tempfile
 import jax
 
 from bridge_jax import cli, configs
-from bridge_jax.bench import measure
+from bridge_jax.bench import first, measure
 from bridge_jax.bench.device import device_peak
 from bridge_jax.bench.peer import PEER_DIR_ENV, PEER_PYTHON_ENV, run_peer
-from bridge_jax.bench.records import append_jsonl, environment, finish, table
+from bridge_jax.bench.records import append_jsonl, environment, finish, finish_process, table
 from bridge_jax.bench.timing import BenchError
 
 WHATS = ("train_step", "inference", "loss", "pipeline", "conv_backward")
+"""What `--what all` measures: in this process, or each in a subprocess of its own."""
+PROCESS_WHATS = ("first_prediction", "first_step")
+"""Fresh-process measurements (`bench.first`), each asked for by name."""
 
 
 def load_config(spec: str, overrides=()):
@@ -85,9 +102,11 @@ def apply_size_options(config, args) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     p = cli.make_parser("bridge_jax.bench", __doc__)
-    p.add_argument("--what", default="train_step", choices=WHATS + ("all",),
-                   help="what to measure (all: each in its own subprocess)")
-    p.add_argument("--config", default="default", help="config name (default, full2, demo, ...[:arg]) or .py path")
+    p.add_argument("--what", default="train_step", choices=WHATS + PROCESS_WHATS + ("all",),
+                   help=f"what to measure (all: each of {', '.join(WHATS)} in its own subprocess)")
+    p.add_argument("--config", default=None,
+                   help="config name (default, full2, demo, ...[:arg]) or .py path "
+                        "(default: default; first_step: demo)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override, e.g. loss.two_warp=full2")
     p.add_argument("--height", type=int, default=None, help="working height (default: the config's)")
     p.add_argument("--width", type=int, default=None, help="working width (default: the config's)")
@@ -101,7 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--conv-batch", type=int, default=2,
                    help="conv_backward: pair-forwards per convolution (2 = the CPU micro-batch, 16 = a plain step "
                         "of 2 cycles)")
-    p.add_argument("--repeats", type=int, default=3, help="timed calls per measurement")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="timed calls per measurement (default 3); first_prediction / first_step: runs of each "
+                        "cache state (default 1)")
     p.add_argument("--warmup", type=int, default=1, help="untimed calls after compiling, before the timed ones")
     p.add_argument("--devices", type=int, default=None, help="train_step: shard over this many devices")
     p.add_argument("--num-cpu-devices", type=int, default=None, help="fake this many CPU devices (before JAX starts)")
@@ -121,11 +142,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--in-process", action="store_true", help="--what all: measure in this process (no subprocesses)")
     p.add_argument("--pipeline-source", default="config", choices=("config", "kitti_sized"),
                    help="--what pipeline: the config's data, or KITTI-sized PNG files in a temporary folder")
+    p.add_argument("--checkpoint", default="demo", help="first_prediction: the model (a shipped name or a folder)")
+    p.add_argument("--working-size", default=None, metavar="HxW|native|trained",
+                   help="first_prediction: bridge_jax.predict's --working-size (default: the model's own choice)")
     return p
 
 
 def parse_args(argv=None):
-    return build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
+    fresh = args.what in PROCESS_WHATS
+    if args.config is None:
+        args.config = "demo" if args.what == "first_step" else "default"
+    if args.repeats is None:
+        args.repeats = 1 if fresh else 3
+    return args
 
 
 def _micro_list(args, config) -> list[int]:
@@ -144,6 +174,10 @@ def _micro_list(args, config) -> list[int]:
 
 def run(args) -> list[dict]:
     """Runs the measurements of `args` in this process; returns the finished records."""
+    if args.what == "first_prediction":
+        return [finish_process(first.measure_first_prediction(args))]
+    if args.what == "first_step":
+        return [finish_process(first.measure_first_step(args))]
     if args.num_cpu_devices:
         jax.config.update("jax_num_cpu_devices", int(args.num_cpu_devices))
     config = load_config(args.config, args.set or [])
