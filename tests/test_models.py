@@ -553,3 +553,17 @@ def test_working_size_check_names_the_option_and_a_size_that_fits():
                                          r"for pwc_lite"):
         models.check_working_size("pwc_lite", 16, 24, "--working-size")
     models.check_working_size("resnet_md", 128, 192, "--working-size")      # fine: no error
+
+
+def test_abstract_init_is_memoised_per_config():
+    """The second call with an equal config (name or mapping) reuses the abstract build; another config does
+    not; callers get their own dict (mutating it does not reach the memo)."""
+    g1, p1 = models.abstract_init("pwc_lite")
+    g2, p2 = models.abstract_init(models.model_config("pwc_lite"))
+    assert g1 is g2 and p1 == p2 and p1 is not p2
+    p2.clear()
+    assert models.abstract_init("pwc_lite")[1] == p1
+    narrow = dict(models.model_config("pwc_lite"), feature_width=16)
+    g3, p3 = models.abstract_init(narrow)
+    assert g3 is not g1 and p3 != p1
+    assert any(a.shape[-1] == 16 for a in jax.tree.leaves(p3))

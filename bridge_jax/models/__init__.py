@@ -19,6 +19,7 @@ Every model takes `coords=True` (normalised x, y channels appended to its input;
 """
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -161,12 +162,24 @@ def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
     return graphdef, jax.tree.map(jnp.asarray, params)
 
 
+_ABSTRACT: dict[str, tuple[nnx.GraphDef, dict]] = {}
+
+
 def abstract_init(config: Any) -> tuple[nnx.GraphDef, dict]:
-    """Like `init` but without allocating: params are `jax.ShapeDtypeStruct`s (shapes for counts/converters)."""
-    model = nnx.eval_shape(lambda: _module(config, nnx.Rngs(params=0)))
-    graphdef, state = nnx.split(model, nnx.Param)
-    params = jax.tree.map(lambda v: jax.ShapeDtypeStruct(v.shape, v.dtype), nnx.to_pure_dict(state))
-    return graphdef, params
+    """Like `init` but without allocating: params are `jax.ShapeDtypeStruct`s (shapes for counts/converters).
+
+    Memoised per normalised config: building the module abstractly takes ~0.3 s for pwc_lite, and loading a
+    model for prediction asks twice (the shape check of the weights, then the predictor). The results are
+    immutable (a GraphDef and ShapeDtypeStructs), so sharing them is safe; callers get a fresh dict."""
+    cfg = model_config(config)
+    key = json.dumps(cfg, sort_keys=True, default=repr)
+    if key not in _ABSTRACT:
+        model = nnx.eval_shape(lambda: _module(cfg, nnx.Rngs(params=0)))
+        graphdef, state = nnx.split(model, nnx.Param)
+        _ABSTRACT[key] = graphdef, jax.tree.map(lambda v: jax.ShapeDtypeStruct(v.shape, v.dtype),
+                                                nnx.to_pure_dict(state))
+    graphdef, params = _ABSTRACT[key]
+    return graphdef, jax.tree.map(lambda a: a, params)
 
 
 def apply(graphdef: nnx.GraphDef, params: dict, pair: jax.Array, *, dtype: Any = None) -> dict:
