@@ -155,24 +155,36 @@ def process_age_s() -> float:
         return time.time() - _IMPORTED
 
 
-_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                   "/jax/core/compile/backend_compile_duration")
+_TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"
+_LOWER_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_BACKEND_EVENT = "/jax/core/compile/backend_compile_duration"
 _CLOCKS: list["CompileClock"] = []
 _listening = False
 
 
 def _on_duration(event: str, duration: float, **_kw) -> None:
-    if event in _COMPILE_EVENTS:
-        for clock in _CLOCKS:
-            clock.seconds += duration
+    if event not in (_TRACE_EVENT, _LOWER_EVENT, _BACKEND_EVENT):
+        return
+    for clock in _CLOCKS:
+        clock.seconds += duration
+        if event == _TRACE_EVENT:
+            clock.traces += 1
+            clock.trace_s += duration
+        elif event == _BACKEND_EVENT:
+            clock.compiles += 1
+            clock.compile_s += duration
 
 
 class CompileClock:
-    """Seconds JAX spent tracing, lowering and compiling (or loading from the cache) while active, from
-    `jax.monitoring` events; a context manager."""
+    """Seconds JAX spent tracing, lowering and compiling (or loading from the cache) while active (`seconds`), and
+    the jaxpr traces and XLA backend compiles among them (`traces`, `trace_s`, `compiles`, `compile_s`), from
+    `jax.monitoring` events; a context manager. Training's first step and the bench's recompilation check both
+    use it (one process-wide listener dispatches to the active clocks)."""
 
     def __init__(self):
         self.seconds = 0.0
+        self.traces = self.compiles = 0
+        self.trace_s = self.compile_s = 0.0
 
     def __enter__(self) -> "CompileClock":
         global _listening

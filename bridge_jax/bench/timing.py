@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import jax
 
+from bridge_jax import compile_cache
 from bridge_jax.models import layers
 
 
@@ -29,43 +30,10 @@ class RecompilationError(BenchError):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Trace / compile counter (jax.monitoring events; one global listener dispatching to active counters)
+# Trace / compile counter: training's clock (jax.monitoring events), which counts traces and compiles too
 # ---------------------------------------------------------------------------------------------------------
 
-_TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"
-_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
-_ACTIVE: list["CompileCounter"] = []
-_LISTENING = False
-
-
-def _listener(event: str, duration: float, **_kw) -> None:
-    for c in _ACTIVE:
-        if event == _TRACE_EVENT:
-            c.traces += 1
-            c.trace_s += duration
-        elif event == _COMPILE_EVENT:
-            c.compiles += 1
-            c.compile_s += duration
-
-
-class CompileCounter:
-    """Counts jaxpr traces and XLA backend compiles (and their seconds) while active (a context manager)."""
-
-    def __init__(self):
-        self.traces = self.compiles = 0
-        self.trace_s = self.compile_s = 0.0
-
-    def __enter__(self):
-        global _LISTENING
-        if not _LISTENING:
-            jax.monitoring.register_event_duration_secs_listener(_listener)
-            _LISTENING = True
-        _ACTIVE.append(self)
-        return self
-
-    def __exit__(self, *exc):
-        _ACTIVE.remove(self)
-        return False
+CompileCounter = compile_cache.CompileClock
 
 
 # ---------------------------------------------------------------------------------------------------------
