@@ -311,8 +311,7 @@ class Predictor:
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
         other = copy.copy(self)
-        other.params = params
-        other._jits = self._jits  # shared on purpose: the compiled functions do not depend on the values
+        other.params = params  # the shallow copy shares `_jits`: the compiled functions do not depend on the values
         return other
 
     def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:

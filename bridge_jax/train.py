@@ -468,12 +468,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                         interrupted = True
                         break
                     local = np.asarray(next(data_iter)["cycle"], np.float32)
+                    batch = _global_array(batch_sharding, local, global_shape)
                     if first_step:
-                        state, metrics = _first_step(step_fn, state, _global_array(batch_sharding, local, global_shape),
-                                                     run, run_status, is_main)
+                        state, metrics = _first_step(step_fn, state, batch, run, run_status, is_main)
                         first_step = False
                     else:
-                        state, metrics = step_fn(state, _global_array(batch_sharding, local, global_shape))
+                        state, metrics = step_fn(state, batch)
                     metrics = jax.device_get(metrics)
                     if guard.skipped(step, metrics):
                         continue
