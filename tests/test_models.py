@@ -59,6 +59,24 @@ def test_param_counts():
     assert models.param_count(p) == 9_374_340  # upstream PWCDCNet (incl. its unused deconv2)
 
 
+@pytest.mark.parametrize("name", models.NAMES)
+def test_shapes_only_build_matches_a_traced_abstract_build(name):
+    """abstract_init builds without tracing initializers (layers.shapes_only); the reference is flax's own
+    nnx.eval_shape of a real build: the same GraphDef, the same parameter names, shapes and dtypes."""
+    cfg = models.model_config(name)
+    traced = nnx.eval_shape(lambda: models._module(cfg, nnx.Rngs(params=0)))
+    g_ref, state = nnx.split(traced, nnx.Param)
+    ref = nnx.to_pure_dict(state)
+    g, params = models.abstract_init(name)
+    assert g == g_ref
+    assert jax.tree.structure(params) == jax.tree.structure(ref)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref)):
+        assert isinstance(a, jax.ShapeDtypeStruct) and a.shape == b.shape and a.dtype == b.dtype
+    # and outside the context, layers draw real values again
+    conv = layers.Conv(3, 4, 3, rngs=nnx.Rngs(params=0))
+    assert isinstance(conv.kernel[...], jax.Array) and float(jnp.abs(conv.kernel[...]).max()) > 0
+
+
 @pytest.mark.parametrize("hw", [(256, 512), (128, 256)])
 def test_full_size_output_shapes(hw):
     h, w = hw

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from bridge_jax.models import pwc_lite, pwcnet, resnet_md
+from bridge_jax.models import layers, pwc_lite, pwcnet, resnet_md
 from bridge_jax.models.layers import init_params_like
 
 _BUILDERS = {
@@ -134,6 +134,14 @@ def _module(config: Any, rngs: nnx.Rngs) -> nnx.Module:
     return _BUILDERS[cfg["name"]][1](cfg, rngs)
 
 
+def _abstract_module(cfg: dict) -> nnx.Module:
+    """The model with `jax.ShapeDtypeStruct` params (no initializer traced: `layers.shapes_only`). No `nnx.Rngs`
+    either: the layers draw no key under `shapes_only`, and creating one is the process's first eager jax op
+    (~0.1 s)."""
+    with layers.shapes_only():
+        return _module(cfg, None)
+
+
 def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
     """Build the model and return `(graphdef, params)`; params are float32 with upstream's init laws
     (resnet_md: PyTorch default uniform; pwcnet: kaiming-normal, zero bias), except that the output convs
@@ -149,7 +157,7 @@ def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
     if isinstance(rng, int):
         rng = jax.random.key(rng)
     cfg = model_config(config)
-    abstract_model = nnx.eval_shape(lambda: _module(cfg, nnx.Rngs(params=0)))
+    abstract_model = _abstract_module(cfg)
     graphdef, state = nnx.split(abstract_model, nnx.Param)
     params = init_params_like(abstract_model, nnx.to_pure_dict(state), rng)
     if cfg.get("head_init") == "zeros":
@@ -174,8 +182,7 @@ def abstract_init(config: Any) -> tuple[nnx.GraphDef, dict]:
     cfg = model_config(config)
     key = json.dumps(cfg, sort_keys=True, default=repr)
     if key not in _ABSTRACT:
-        model = nnx.eval_shape(lambda: _module(cfg, nnx.Rngs(params=0)))
-        graphdef, state = nnx.split(model, nnx.Param)
+        graphdef, state = nnx.split(_abstract_module(cfg), nnx.Param)
         _ABSTRACT[key] = graphdef, jax.tree.map(lambda v: jax.ShapeDtypeStruct(v.shape, v.dtype),
                                                 nnx.to_pure_dict(state))
     graphdef, params = _ABSTRACT[key]

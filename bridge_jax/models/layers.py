@@ -55,6 +55,30 @@ def zeros_init(key, shape, dtype=jnp.float32):
     return jnp.zeros(shape, dtype)
 
 
+_SHAPES_ONLY = contextvars.ContextVar("bridge_jax_shapes_only", default=False)
+
+
+@contextlib.contextmanager
+def shapes_only():
+    """Inside, the layers below build their params as `jax.ShapeDtypeStruct`s and draw no random numbers.
+
+    The same module structure (and GraphDef) as a real build, without tracing one initializer: `nnx.eval_shape`
+    traces each of them (~0.1-0.4 s for pwc_lite, paid by every prediction that loads a model)."""
+    token = _SHAPES_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _SHAPES_ONLY.reset(token)
+
+
+def new_param(init, rngs: nnx.Rngs | None, shape: tuple[int, ...]) -> nnx.Param:
+    """`nnx.Param(init(rngs.params(), shape))` (float32; `rngs=None`: no key drawn, for constant inits), or its
+    shape alone under `shapes_only()`."""
+    if _SHAPES_ONLY.get():
+        return nnx.Param(jax.ShapeDtypeStruct(tuple(shape), jnp.float32))
+    return nnx.Param(init(rngs.params() if rngs is not None else None, shape))
+
+
 def elu(x: jax.Array) -> jax.Array:
     """ELU with alpha = 1 (`nn.ELU()`)."""
     return jax.nn.elu(x)
@@ -391,8 +415,8 @@ class Conv(nnx.Module):
             w_init, b_init = kaiming_normal_init(fan_in), zeros_init
         else:
             raise ValueError(f"unknown init {init!r}; expected 'torch' or 'kaiming_normal'")
-        self.kernel = nnx.Param(w_init(rngs.params(), (kernel_size, kernel_size, in_features, out_features)))
-        self.bias = nnx.Param(b_init(rngs.params(), (out_features,)))
+        self.kernel = new_param(w_init, rngs, (kernel_size, kernel_size, in_features, out_features))
+        self.bias = new_param(b_init, rngs, (out_features,))
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return conv2d(x, self.kernel[...], self.bias[...], stride=self.stride, padding=self.padding,
@@ -412,9 +436,8 @@ class ConvTranspose(nnx.Module):
         self.padding = padding
         self.init_kind = "kaiming_normal_transpose"
         fan_in = out_features * kernel_size * kernel_size
-        self.kernel = nnx.Param(kaiming_normal_init(fan_in)(
-            rngs.params(), (kernel_size, kernel_size, in_features, out_features)))
-        self.bias = nnx.Param(jnp.zeros((out_features,), jnp.float32))
+        self.kernel = new_param(kaiming_normal_init(fan_in), rngs, (kernel_size, kernel_size, in_features, out_features))
+        self.bias = new_param(zeros_init, None, (out_features,))
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return conv_transpose2d(x, self.kernel[...], self.bias[...], stride=self.stride, padding=self.padding)
