@@ -398,7 +398,8 @@ def read_params(path: str | os.PathLike, *, require_finite: bool = False) -> tup
             raise ValueError(f"{path}: {e}") from e
     if separate:
         cfg["separate_networks"] = True
-    return cfg, jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)
+    # one device_put of the tree: jnp.asarray on a numpy leaf compiles a small XLA program per leaf shape
+    return cfg, jax.device_put(jax.tree.map(lambda a: np.asarray(a, np.float32), params))
 
 
 # ==========================================================================================================

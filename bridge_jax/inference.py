@@ -333,7 +333,7 @@ class Predictor:
         n = pairs.shape[0]
         rows = (bool(is_stereo),) * n if isinstance(is_stereo, (bool, np.bool_)) else tuple(map(bool, is_stereo))
         if self.mesh is None:
-            x = jnp.asarray(pairs)
+            x = jax.device_put(pairs)  # not jnp.asarray: that compiles a small program per new shape
         else:
             pad = (-n) % self.mesh.size
             if pad:

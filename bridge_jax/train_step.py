@@ -97,10 +97,17 @@ def make_optimizer(opt: OptimizerConfig, steps_per_epoch: int):
 # ##########################################################################################################
 
 def create_train_state(params, tx, rng) -> dict:
-    """The train state pytree; params are float32 (also under bf16 compute)."""
-    params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float32), params)
-    return {"params": params, "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
-            "rng": jnp.asarray(rng, jnp.uint32)}
+    """The train state pytree; params are float32 (also under bf16 compute).
+
+    Built by one jitted function: run eagerly, the optimiser's per-leaf zeros compiled one small XLA program per
+    parameter shape (~0.7 s of every training start on 2 cores)."""
+
+    def build(params, rng):
+        params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float32), params)
+        return {"params": params, "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
+                "rng": jnp.asarray(rng, jnp.uint32)}
+
+    return jax.jit(build)(params, rng)
 
 
 def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):

@@ -167,7 +167,8 @@ def init(rng: jax.Array | int, config: Any) -> tuple[nnx.GraphDef, dict]:
         # still get gradients once the head weights move away from zero.
         heads = _HEAD_PREFIXES[cfg["name"]]
         params = {k: (jax.tree.map(np.zeros_like, v) if k.startswith(heads) else v) for k, v in params.items()}
-    return graphdef, jax.tree.map(jnp.asarray, params)
+    # one device_put of the tree: jnp.asarray on a numpy leaf compiles a small XLA program per leaf shape
+    return graphdef, jax.device_put(params)
 
 
 _ABSTRACT: dict[str, tuple[nnx.GraphDef, dict]] = {}

@@ -181,9 +181,10 @@ def load_params(spec: str | os.PathLike) -> tuple[dict, dict]:
     if is_name(spec):
         e = entry(os.fspath(spec))
         if e.kind == "shipped":
-            import jax.numpy as jnp
+            import jax
             cfg, params = load_shipped(e.name)
-            return cfg, _map(params, lambda a: jnp.asarray(a, jnp.float32))
+            # device_put of the whole tree: jnp.asarray on a numpy leaf compiles a small XLA program per shape
+            return cfg, jax.device_put(_map(params, lambda a: np.asarray(a, np.float32)))
         spec = local_checkpoint(e.name)
     return checkpointing.read_params(spec)
 
