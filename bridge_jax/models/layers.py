@@ -436,7 +436,8 @@ class ConvTranspose(nnx.Module):
         self.padding = padding
         self.init_kind = "kaiming_normal_transpose"
         fan_in = out_features * kernel_size * kernel_size
-        self.kernel = new_param(kaiming_normal_init(fan_in), rngs, (kernel_size, kernel_size, in_features, out_features))
+        self.kernel = new_param(kaiming_normal_init(fan_in), rngs,
+                                (kernel_size, kernel_size, in_features, out_features))
         self.bias = new_param(zeros_init, None, (out_features,))
 
     def __call__(self, x: jax.Array) -> jax.Array:
