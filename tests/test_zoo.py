@@ -29,9 +29,10 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
 
 SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
     "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
-    "long": ("long,real", "retrain with `bridge-train --config=demo:long,real --workdir=work/long`, run "
-                          "experiments/real_images.py --models work/long --card work/long_card.json and "
-                          "`bridge-zoo build long --from work/long --card work/long_card.json`"),
+    "long": ("long,real,selfsup", "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, "
+                                  "stage 2 with `bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, "
+                                  "run experiments/real_images.py --models work/long2 --card work/long_card.json "
+                                  "and `bridge-zoo build long --from work/long2 --card work/long_card.json`"),
 }
 
 
@@ -59,7 +60,10 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     next to OpenCV's, from its card."""
     from bridge_jax.zoo.__main__ import main
     meta = zoo.info("long")
-    assert meta["config"]["data"]["synthetic_scene"] == "real" and meta["config"]["init_from"] == "demo"
+    assert meta["config"]["data"]["synthetic_scene"] == "real" and meta["config"]["init_from"] == "work/long"
+    assert meta["config"]["loss"]["self_supervision"] > 0  # stage 2: the self-supervision term
+    (stage1,) = meta["earlier_stages"]  # stage 1: the demo model fine-tuned on the `real` scenes
+    assert stage1["config"] == "demo:long,real" and stage1["init_from"] == "demo" and stage1["steps"] > 0
     assert meta["training"]["seconds"] > 0 and "core" in meta["training"]["machine"]
     assert set(meta["real_images"]) == {"motorcycle", "homography", "heldout_synthetic"}
     for by_size in meta["real_images"].values():
@@ -68,6 +72,7 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     out = capsys.readouterr().out
     assert f"long: pwc_lite trained at 128x256, {meta['steps']} steps" in out
     assert "scenes real" in out and meta["training"]["machine"] in out
+    assert f"stage 1: --config=demo:long,real, {stage1['steps']} steps from demo" in out
     d1 = meta["real_images"]["motorcycle"]["native"]["d1_all"]
     line = next(ln for ln in out.splitlines() if "motorcycle @ native:" in ln)
     assert f"d1_all {d1:.3f}" in line

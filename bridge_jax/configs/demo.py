@@ -20,14 +20,16 @@ Arguments (comma-separated, e.g. `demo:resnet_md_tiny,paper_loss`): `short` = a 
 `resnet_md_tiny` = the paper's network (tiny widths) instead of pwc_lite; `paper_loss` = every training switch
 at the paper's setting; `real` = the synthetic scenes that carry over to real images (photo textures, slanted and
 rotating objects, varied rigs, per-camera photometric differences: `data.synthetic_scene=real`), and with `long`
-the recipe of the shipped `long` model (the demo model fine-tuned on them at 128x256, 4,000 steps, lr 5e-4);
+stage 1 of the shipped `long` model (the demo model fine-tuned on them at 128x256, 4,000 steps, lr 5e-4);
+`long,real,selfsup` = its stage 2 (1,000 steps with the self-supervision term, lr 1.25e-4, initialised from
+stage 1's workdir `work/long`);
 `long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
 from bridge_jax.configs import default
 
-ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real")
+ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup")
 
 
 def get_config(arg=None):
@@ -73,6 +75,13 @@ def get_config(arg=None):
             c.init_from = "demo"
             c.lr = 5e-4
             c.loop.update(num_train_steps=4000, steps_per_epoch=500, checkpoint_every=250)  # lr halves at 2000
+            if "selfsup" in opts:  # stage 2 of the shipped `long`: self-supervision on top of the finished stage 1
+                # (the loss's teacher term: full-frame maps, gradient stopped, supervise the maps of crops), at
+                # stage 1's last lr, from stage 1's workdir (--config.init_from=DIR if it lives elsewhere).
+                c.init_from = "work/long"
+                c.lr = 1.25e-4
+                c.loss.self_supervision = 0.3
+                c.loop.update(num_train_steps=1000, steps_per_epoch=1000, eval_every=250)
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
         c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4

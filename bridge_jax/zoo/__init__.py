@@ -292,6 +292,10 @@ def card_lines(name: str) -> list[str]:
              f"  data: {cfg.get('data', {}).get('source', '?')} scenes "
              f"{cfg.get('data', {}).get('synthetic_scene', 'demo')}; lr {cfg.get('lr')}, "
              f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
+    for i, stage in enumerate(meta.get("earlier_stages") or [], 1):  # runs whose weights this one started from
+        lines.append(f"  stage {i}: --config={stage.get('config', '?')}, {stage.get('steps', '?')} steps from "
+                     f"{stage.get('init_from') or 'scratch'} in {stage.get('seconds', 0) / 3600:.2f} h on "
+                     f"{stage.get('machine', '?')}")
     t = meta.get("training") or {}
     if t:
         hours = t.get("seconds", 0) / 3600
