@@ -32,7 +32,8 @@ SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
     "long": ("long,real,selfsup", "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, "
                                   "stage 2 with `bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, "
                                   "run experiments/real_images.py --models work/long2 --card work/long_card.json "
-                                  "and `bridge-zoo build long --from work/long2 --card work/long_card.json`"),
+                                  "and `bridge-zoo build long --from work/long2 --earlier-stage "
+                                  "demo:long,real=work/long --card work/long_card.json`"),
 }
 
 
@@ -170,3 +171,25 @@ def test_the_listing_says_how_to_get_weights_that_are_not_converted_yet(tmp_path
     line = next(ln for ln in out.splitlines() if ln.startswith("upstream_ver_a"))
     assert "not converted yet" in line and "bridge-convert --from monodepth_ver_a.pth" in line
     assert str(tmp_path / "upstream_ver_a") in line
+
+
+def test_earlier_stage_is_read_from_its_workdir_and_bad_values_are_refused(tmp_path, capsys):
+    """`bridge-zoo build --earlier-stage CONFIG=WORKDIR`: the stage's steps (its last checkpoint), init_from, lr
+    and wall time (first to last logged train step) come from its workdir; a malformed value or a folder that is
+    not a finished run is one error line and exit code 2, before anything is written."""
+    from bridge_jax.zoo.__main__ import main
+    run = tmp_path / "stage1"
+    (run / "checkpoints" / "250" / "state").mkdir(parents=True)
+    (run / "checkpoints" / "4000" / "state").mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"init_from": "demo", "lr": 5e-4}))
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in [
+        {"step": 25, "kind": "train", "time": 1000.0}, {"step": 500, "kind": "val", "time": 1500.0},
+        {"step": 4000, "kind": "train", "time": 1000.0 + 7200.0}]) + "\n")
+    stage = zoo.stage_summary("demo:long,real", run, machine="m")
+    assert stage == {"config": "demo:long,real", "steps": 4000, "init_from": "demo", "lr": 5e-4, "seconds": 7200.0,
+                     "machine": "m"}
+    before = (zoo.ZOO_DIR / "long.json").read_bytes()
+    assert main(["build", "long", "--from", str(run), "--earlier-stage", "no-equals-sign"]) == 2
+    assert "expected CONFIG=WORKDIR" in capsys.readouterr().err
+    assert main(["build", "long", "--from", str(run), "--earlier-stage", f"x={tmp_path / 'missing'}"]) == 2
+    assert (zoo.ZOO_DIR / "long.json").read_bytes() == before

@@ -27,6 +27,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, Optional
 
 import numpy as np
@@ -247,13 +248,33 @@ def training_summary(workdir: str | os.PathLike) -> dict:
             "seconds": round(float(last["time"]) - float(first["time"]), 1)}
 
 
+def stage_summary(config: str, workdir: str | os.PathLike, machine: Optional[str] = None) -> dict:
+    """One earlier stage of a shipped model (a run whose weights the shipped run started from): {"config" (the
+    `--config` it ran, as given), "steps" (its last checkpoint), "init_from", "lr", "seconds", "machine"}, read from
+    its finished training workdir."""
+    from bridge_jax import checkpointing  # heavy import only for maintainers
+
+    step_dir = checkpointing.find_train_step_dir(workdir)
+    cfg_path = Path(workdir) / checkpointing.CONFIG_JSON
+    if step_dir is None or not cfg_path.is_file():
+        raise ValueError(f"earlier stage {config}: {workdir} is not a finished training workdir (expected "
+                         f"{checkpointing.CONFIG_JSON} and a checkpoint under checkpoints/)")
+    run_cfg = json.loads(cfg_path.read_text())
+    return {"config": config, "steps": int(Path(step_dir).name), "init_from": run_cfg.get("init_from", ""),
+            "lr": run_cfg.get("lr"), "seconds": training_summary(workdir).get("seconds", 0.0),
+            "machine": machine or _this_machine()}
+
+
 def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None,
-                  card: Optional[dict] = None, machine: Optional[str] = None) -> Path:
+                  card: Optional[dict] = None, machine: Optional[str] = None,
+                  earlier_stages: Sequence[tuple[str, str | os.PathLike]] = ()) -> Path:
     """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
     config changes, retrain with `make demo` and run `bridge-zoo build demo --from
     work/demo/train`). The json records the run's config so a test notices when the config moved on, and its
     card: the training time (`training_summary`) on `machine` (default: this one), plus the entries of `card`
-    (e.g. {"real_images": numbers of experiments/real_images.py}) that `bridge-zoo show` prints."""
+    (e.g. {"real_images": numbers of experiments/real_images.py}) that `bridge-zoo show` prints.
+    `earlier_stages`: (config, workdir) of the runs this one was initialised from, oldest first
+    (`stage_summary`)."""
     import io
 
     from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
@@ -270,6 +291,8 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
             "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
             "validation": validation if validation is not None else run_workdir.last_validation(str(workdir)),
             "training": dict(training_summary(workdir), machine=machine or _this_machine())}
+    if earlier_stages:
+        meta["earlier_stages"] = [stage_summary(c, d, machine) for c, d in earlier_stages]
     meta.update(card or {})
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
@@ -294,8 +317,8 @@ def card_lines(name: str) -> list[str]:
              f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
     for i, stage in enumerate(meta.get("earlier_stages") or [], 1):  # runs whose weights this one started from
         lines.append(f"  stage {i}: --config={stage.get('config', '?')}, {stage.get('steps', '?')} steps from "
-                     f"{stage.get('init_from') or 'scratch'} in {stage.get('seconds', 0) / 3600:.2f} h on "
-                     f"{stage.get('machine', '?')}")
+                     f"{stage.get('init_from') or 'scratch'}, lr {stage.get('lr')}, in "
+                     f"{stage.get('seconds', 0) / 3600:.2f} h on {stage.get('machine', '?')}")
     t = meta.get("training") or {}
     if t:
         hours = t.get("seconds", 0) / 3600

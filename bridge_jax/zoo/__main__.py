@@ -3,7 +3,7 @@
     bridge-zoo                                      # names, kinds, where each one is (or how to get it)
     bridge-zoo show long                            # a shipped model's card: recipe, steps, time, numbers
     bridge-zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
-    bridge-zoo build long --from work/long/train --card work/long/card.json   # with its real-image numbers
+    bridge-zoo build long --from work/long2 --earlier-stage demo:long,real=work/long --card work/long_card.json
 
 `build` writes bridge_jax/zoo/<name>.npz (float32 params, compressed) and <name>.json (model, working size, the
 run's config, steps, training time and machine, last validation, SHA-256, and the entries of --card); the test suite checks the shipped model against the current
@@ -28,6 +28,9 @@ def build_parser():
                    help="a JSON file whose entries join the model's card, e.g. {\"real_images\": {...}} written "
                         "by experiments/real_images.py --card")
     b.add_argument("--machine", default=None, help="the machine it was trained on (default: this one)")
+    b.add_argument("--earlier-stage", dest="earlier_stages", action="append", default=[], metavar="CONFIG=WORKDIR",
+                   help="a run this one was initialised from, with the --config it ran (repeat, oldest first), "
+                        "e.g. demo:long,real=work/long: its steps, lr and training time join the card")
     s = sub.add_parser("show", help="print a shipped model's card (recipe, steps, training time, numbers)")
     s.add_argument("name", help="registry name of a shipped model (e.g. long)")
     cli.add_debug_flag(p)
@@ -49,7 +52,15 @@ def main(argv=None) -> int:
                     raise ValueError(f"--card {args.card}: not JSON ({e})") from None
                 if not isinstance(card, dict):
                     raise ValueError(f"--card {args.card}: expected a JSON object")
-            print(f"wrote {zoo.build_shipped(args.name, args.workdir, card=card, machine=args.machine)}")
+            stages = []
+            for spec in args.earlier_stages:
+                config, sep, stage_dir = spec.rpartition("=")
+                if not sep or not config or not stage_dir:
+                    raise ValueError(f"--earlier-stage {spec!r}: expected CONFIG=WORKDIR, "
+                                     "e.g. demo:long,real=work/long")
+                stages.append((config, stage_dir))
+            npz = zoo.build_shipped(args.name, args.workdir, card=card, machine=args.machine, earlier_stages=stages)
+            print(f"wrote {npz}")
             return 0
         if args.command == "show":
             if zoo.entry(args.name).kind != "shipped":
