@@ -252,17 +252,23 @@ def stage_summary(config: str, workdir: str | os.PathLike, machine: Optional[str
     """One earlier stage of a shipped model (a run whose weights the shipped run started from): {"config" (the
     `--config` it ran, as given), "steps" (its last checkpoint), "init_from", "lr", "seconds", "machine"}, read from
     its finished training workdir."""
+    run_cfg, steps = _finished_run(workdir, f"earlier stage {config}")
+    return {"config": config, "steps": steps, "init_from": run_cfg.get("init_from", ""),
+            "lr": run_cfg.get("lr"), "seconds": training_summary(workdir).get("seconds", 0.0),
+            "machine": machine or _this_machine()}
+
+
+def _finished_run(workdir: str | os.PathLike, what: str) -> tuple[dict, int]:
+    """(the recorded config, the step of the newest checkpoint) of a finished training workdir; ValueError naming
+    `what` when it is not one."""
     from bridge_jax import checkpointing  # heavy import only for maintainers
 
     step_dir = checkpointing.find_train_step_dir(workdir)
     cfg_path = Path(workdir) / checkpointing.CONFIG_JSON
     if step_dir is None or not cfg_path.is_file():
-        raise ValueError(f"earlier stage {config}: {workdir} is not a finished training workdir (expected "
+        raise ValueError(f"{what}: {workdir} is not a finished training workdir (expected "
                          f"{checkpointing.CONFIG_JSON} and a checkpoint under checkpoints/)")
-    run_cfg = json.loads(cfg_path.read_text())
-    return {"config": config, "steps": int(Path(step_dir).name), "init_from": run_cfg.get("init_from", ""),
-            "lr": run_cfg.get("lr"), "seconds": training_summary(workdir).get("seconds", 0.0),
-            "machine": machine or _this_machine()}
+    return json.loads(cfg_path.read_text()), int(Path(step_dir).name)
 
 
 def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None,
@@ -282,13 +288,12 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     workdir = Path(workdir).absolute()
     cfg, params = checkpointing.read_params(workdir)
     checkpointing.check_finite_params(params, str(workdir))
-    run_cfg = json.loads((workdir / checkpointing.CONFIG_JSON).read_text())
-    step = Path(checkpointing.find_train_step_dir(workdir)).name
+    run_cfg, step = _finished_run(workdir, "--from")
     buf = io.BytesIO()
     np.savez_compressed(buf, **_flatten(_map(params, np.asarray)))
     data = buf.getvalue()
     meta = {"name": name, "model": cfg, "height": int(run_cfg["height"]), "width": int(run_cfg["width"]),
-            "config": run_cfg, "steps": int(step), "sha256": hashlib.sha256(data).hexdigest(),
+            "config": run_cfg, "steps": step, "sha256": hashlib.sha256(data).hexdigest(),
             "validation": validation if validation is not None else run_workdir.last_validation(str(workdir)),
             "training": dict(training_summary(workdir), machine=machine or _this_machine())}
     if earlier_stages:
