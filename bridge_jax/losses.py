@@ -205,12 +205,33 @@ class Photometric(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------- eq. 7: reconstruction
+def _box3_sum(x):
+    """3x3 box sum, stride 1, VALID, over axes -3, -2: (..., H, W, C) -> (..., H-2, W-2, C)."""
+    rows = x[..., :-2, :, :] + x[..., 1:-1, :, :] + x[..., 2:, :, :]
+    return rows[..., :-2, :] + rows[..., 1:-1, :] + rows[..., 2:, :]
+
+
+@jax.custom_vjp
 def _avg_pool3(x):
     """3x3 mean pooling, stride 1, VALID: (..., H, W, C) -> (..., H-2, W-2, C)."""
     # Shifted slices rather than lax.reduce_window: they fuse with the SSIM arithmetic and compile several
     # times faster on XLA:CPU.
-    rows = x[..., :-2, :, :] + x[..., 1:-1, :, :] + x[..., 2:, :, :]
-    return (rows[..., :-2, :] + rows[..., 1:-1, :] + rows[..., 2:, :]) / 9.0
+    return _box3_sum(x) / 9.0
+
+
+def _avg_pool3_fwd(x):
+    return _avg_pool3(x), None
+
+
+def _avg_pool3_bwd(_, g):
+    # The transpose of a VALID box filter is the same box filter over the cotangent zero-padded by 2 ("full").
+    # Written out, it is one pad and one fused sum; autodiff of the six slices gave six padded copies, which
+    # took a fifth of the demo train step on 2 cores.
+    pad = [(0, 0)] * (g.ndim - 3) + [(2, 2), (2, 2), (0, 0)]
+    return (_box3_sum(jnp.pad(g, pad)) / 9.0,)
+
+
+_avg_pool3.defvjp(_avg_pool3_fwd, _avg_pool3_bwd)
 
 
 def ssim(x, y, *, c1: float = 0.01**2, c2: float = 0.03**2):

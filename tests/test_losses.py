@@ -64,6 +64,22 @@ def test_ssim_matches_numpy(rng):
     np.testing.assert_allclose(losses.ssim(jnp.asarray(x, jnp.float32), jnp.asarray(x, jnp.float32)), 0.0, atol=1e-6)
 
 
+def test_ssim_gradient_matches_finite_differences(rng):
+    # The 3x3 mean pooling inside SSIM has a hand-written backward pass (a "full" box filter of the cotangent):
+    # central differences of the SSIM sum, in float64 numpy, check it at interior, edge and corner pixels.
+    x = rng.uniform(0.2, 0.8, size=(7, 9, 2))
+    y = np.clip(x + rng.normal(0, 0.1, size=x.shape), 0, 1)
+    w = rng.uniform(size=(5, 7, 2))
+    grad = np.asarray(jax.grad(lambda a: jnp.sum(losses.ssim(a, jnp.asarray(y, jnp.float32)) * w))(
+        jnp.asarray(x, jnp.float32)))
+    eps = 1e-4
+    for idx in [(3, 4, 0), (0, 0, 1), (6, 8, 0), (0, 5, 1), (4, 0, 0)]:
+        e = np.zeros_like(x)
+        e[idx] = eps
+        fd = (np.sum(np_ssim(x + e, y) * w) - np.sum(np_ssim(x - e, y) * w)) / (2 * eps)
+        assert grad[idx] == pytest.approx(fd, rel=2e-3, abs=2e-4), idx
+
+
 def test_photometric_loss_normalisation(rng):
     est = rng.uniform(size=(2, 8, 8, 3)).astype(np.float32)
     img = rng.uniform(size=(2, 8, 8, 3)).astype(np.float32)

@@ -249,6 +249,35 @@ def test_correlation_matches_numpy(rng):
                                atol=1e-5)
 
 
+@pytest.mark.parametrize("width,d", [(37, 4), (16, 4), (3, 4), (33, 2)])
+def test_correlation_blocks_match_numpy_at_any_width(rng, width, d):
+    # Widths above pwcnet.CORRELATION_TILE run in column blocks with a zero-padded last block (37, 33), one
+    # block (16), and a map narrower than the search window (3): each must give the plain definition.
+    f1 = rng.normal(size=(2, 3, width, 4))
+    f2 = rng.normal(size=(2, 3, width, 4))
+    np.testing.assert_allclose(pwcnet.correlation(f32(f1), f32(f2), d), np_correlation(f1, f2, d), rtol=1e-4,
+                               atol=1e-5)
+
+
+def test_correlation_gradient_matches_numpy_at_block_width(rng):
+    # d/df1[y, x, c] = sum_k cot[y, x, k] f2[y+dy, x+dx, c] / C, d/df2 the same scattered back (linear: exact).
+    d, (h, w, c) = 2, (3, 37, 4)
+    f1, f2 = rng.normal(size=(1, h, w, c)), rng.normal(size=(1, h, w, c))
+    cot = rng.normal(size=(1, h, w, (2 * d + 1) ** 2))
+    g1, g2 = jax.grad(lambda a, b: jnp.sum(pwcnet.correlation(a, b, d) * f32(cot)), argnums=(0, 1))(f32(f1), f32(f2))
+    f2p = np.pad(f2, ((0, 0), (d, d), (d, d), (0, 0)))
+    want1, want2p = np.zeros_like(f1), np.zeros_like(f2p)
+    for y in range(h):
+        for x in range(w):
+            for dy in range(-d, d + 1):
+                for dx in range(-d, d + 1):
+                    g = cot[0, y, x, (dy + d) * (2 * d + 1) + dx + d] / c
+                    want1[0, y, x] += g * f2p[0, y + d + dy, x + d + dx]
+                    want2p[0, y + d + dy, x + d + dx] += g * f1[0, y, x]
+    np.testing.assert_allclose(g1, want1, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(g2, want2p[:, d:-d, d:-d], rtol=1e-4, atol=1e-5)
+
+
 def test_correlation_gradient_matches_finite_difference(rng):
     f1 = f32(rng.normal(size=(1, 4, 5, 3)))
     f2 = f32(rng.normal(size=(1, 4, 5, 3)))
