@@ -14,6 +14,9 @@ next to OpenCV on the same inputs at full resolution:
 3. **Held-out synthetic frames** (`synthetic.SCENE_PRESETS["heldout"]`: held-out photos as textures, a focal
    length and baseline no training preset draws, stronger photometric differences), 256x512: flow EPE-all,
    EPE-noc and disparity EPE / D1 against DIS and SGBM, and zero motion for scale.
+4. **Pure shifts** (`shift_set`): each held-out photo moved by 4 and 8 px, horizontally and vertically, with a
+   camera-response change: EPE and the gain along the motion, per direction. It shows a direction the training
+   scenes never moved in (the vertical, before `real_motion`).
 
     python experiments/real_images.py --models demo,long --sizes trained,native \\
         --out experiments/results/real_images.md --pictures experiments/results/real_images
@@ -184,6 +187,40 @@ def homography_set(per_photo: int = 3, seed: int = HOMOGRAPHY_SEED) -> list[dict
     return out
 
 
+SHIFTS = ((4.0, 0.0), (-8.0, 0.0), (0.0, 4.0), (0.0, -8.0))
+"""The translations (dx, dy) px of `shift_set`: two horizontal, then the same two turned vertical."""
+
+
+def shift_set(seed: int = HOMOGRAPHY_SEED + 1) -> list[dict]:
+    """Each held-out photo moved by each of `SHIFTS` (no patches, a camera-response change between the frames):
+    the simplest motion there is, asked once horizontally and once vertically. A model that learned flow from
+    scenes that hardly move vertically answers the vertical ones short (`shift_metrics`)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for name in photos.HELDOUT_PHOTOS:
+        image = photos.load_photo(name)
+        for dx, dy in SHIFTS:
+            g = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+            pair = homography_pair(image, image, rng, homography=g, patches=[])
+            pair.update(id=f"{name}-{dx:+.0f},{dy:+.0f}", shift=(dx, dy))
+            out.append(pair)
+    return out
+
+
+def shift_metrics(flows: list[np.ndarray], pairs: list[dict]) -> dict:
+    """EPE (noc pixels) of the horizontal and of the vertical shifts of `shift_set`, and the gain along the
+    motion: median predicted component / true component, over the noc pixels (1 = exact, < 1 = short)."""
+    out: dict[str, list] = {"epe_horizontal": [], "epe_vertical": [], "gain_horizontal": [], "gain_vertical": []}
+    for f, pair in zip(flows, pairs):
+        dx, dy = pair["shift"]
+        axis = "horizontal" if dy == 0 else "vertical"
+        m = pair["noc"]
+        out[f"epe_{axis}"].append(float(np.linalg.norm(f - pair["flow"], axis=-1)[m].mean()))
+        c, true = (0, dx) if dy == 0 else (1, dy)
+        out[f"gain_{axis}"].append(float(np.median(f[..., c][m]) / true))
+    return {k: float(np.mean(v)) for k, v in out.items()}
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Running the checks
 # ----------------------------------------------------------------------------------------------------------
@@ -202,10 +239,11 @@ def _mean(rows: list[dict]) -> dict:
 
 def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pictures: str | None = None) -> dict:
     """methods: name -> predictor (or "opencv"/"zero"). Returns {check: {method: metrics}}."""
-    results: dict[str, dict] = {"motorcycle": {}, "homography": {}, "heldout_synthetic": {}}
+    results: dict[str, dict] = {"motorcycle": {}, "homography": {}, "heldout_synthetic": {}, "shifts": {}}
     timing: dict[str, float] = {}
     moto = motorcycle()
     hom = homography_set(per_photo)
+    shifts = shift_set()
     syn = synthetic_frames(synthetic_num, HELDOUT_SYNTHETIC_SEED, 256, 512, scene="heldout")
     panels: dict[str, list] = {"motorcycle": [], "homography": [], "heldout_synthetic": []}
     for name, method in methods.items():
@@ -252,6 +290,14 @@ def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pi
             if k == 0:
                 panels["heldout_synthetic"].append((name, visualize.flow_to_color(f, max_flow=30.0)))
         results["heldout_synthetic"][name] = _mean(rows)
+        # 4. Pure shifts, horizontal and vertical
+        if method == "zero":
+            flows = [np.zeros_like(p["flow"]) for p in shifts]
+        elif method == "opencv":
+            flows = [baselines.dis_flow(p["frame_t"], p["frame_t1"]) for p in shifts]
+        else:
+            flows = method.predict([("flow", p["frame_t"], p["frame_t1"]) for p in shifts], batch=1)
+        results["shifts"][name] = shift_metrics(flows, shifts)
         timing[name] = time.perf_counter() - t0
         print(f"{name}: {timing[name]:.1f} s", file=sys.stderr, flush=True)
     if pictures:
@@ -293,16 +339,19 @@ def markdown(results: dict, header: str) -> str:
     cols = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
             "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
             "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
-                                  ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")]}
+                                  ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")],
+            "shifts": [("epe_horizontal", "EPE horizontal px"), ("epe_vertical", "EPE vertical px"),
+                       ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")]}
     titles = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
               "homography": "Held-out photos under homographies + moving patches (flow)",
-              "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)"}
+              "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)",
+              "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)"}
     for check, cs in cols.items():
         lines += [f"### {titles[check]}", "", "| method | " + " | ".join(c[1] for c in cs) + " |",
                   "|---" * (len(cs) + 1) + "|"]
         for name, m in results[check].items():
             lines.append(f"| {name} | " + " | ".join(f"{m[c[0]]:.3f}" if c[0].startswith(("epe", "flow_epe",
-                                                                                             "disp_epe"))
+                                                                                             "disp_epe", "gain"))
                                                       else f"{m[c[0]]:.1f}" for c in cs) + " |")
         lines.append("")
     return "\n".join(lines)

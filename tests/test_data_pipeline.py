@@ -293,3 +293,63 @@ def test_zoom_crop_keeps_stereo_rectified_and_scales_disparity():
 def test_zoom_option_is_checked():
     with pytest.raises(ValueError, match="data.augment_zoom"):
         pipeline.DataConfig(augment_zoom=0.0)
+
+
+def test_shift_crop_hand_case_windows_and_offset():
+    """Frames that hold their own pixel coordinates: the t windows and the t+1 windows are the drawn ones, the
+    two cameras of each time share a window, and the offset stays within the bound."""
+    h, w = 40, 80
+    ys, xs = np.mgrid[0:h, 0:w]
+    frame = np.stack([ys, xs, np.zeros_like(ys)], -1).astype(np.uint8)
+    cycle = np.stack([frame, frame + 0, frame, frame])
+    assert pipeline.shift_crop(cycle, np.random.default_rng(0), 0.0) is cycle
+    for seed in range(20):
+        y0, x0, dy, dx = pipeline.draw_shift(np.random.default_rng(seed), h, w, 0.1)  # m = 4, mx = 8
+        assert abs(dy) <= 4 and abs(dx) <= 8
+        out = pipeline.shift_crop(cycle, np.random.default_rng(seed), 0.1)
+        assert out.shape == (4, 36, 72, 3)
+        assert out[0, 0, 0, 0] == y0 and out[0, 0, 0, 1] == x0 and out[1, 0, 0, 0] == y0
+        assert out[2, 0, 0, 0] == y0 + dy and out[2, 0, 0, 1] == x0 + dx and out[3, -1, -1, 1] == x0 + dx + 71
+
+
+def test_shift_crop_moves_the_flow_and_keeps_the_disparity():
+    """On a rendered cycle with exact ground truth: after the shifted crop, left_t1 sampled at the old flow
+    minus the window offset reconstructs left_t (and the old flow itself does not), and the right views still
+    reconstruct the left ones with the old disparities (the pairs stay rectified)."""
+    h, w = 96, 192
+    s = synthetic.render_sample(21, h, w)
+    for seed in (3, 4):
+        y0, x0, dy, dx = pipeline.draw_shift(np.random.default_rng(seed), h, w, 0.1)
+        if abs(dy) < 3:
+            continue
+        c = pipeline.shift_crop(s["cycle"], np.random.default_rng(seed), 0.1)
+        ch, cw = c.shape[1:3]
+        win = (slice(y0, y0 + ch), slice(x0, x0 + cw))
+        gx, gy = np.meshgrid(np.arange(cw, dtype=np.float64), np.arange(ch, dtype=np.float64))
+        fl, noc = s["flow"][win], s["noc_flow"][win]
+        # the match must also fall inside the t+1 window
+        noc = noc & (gx + fl[..., 0] - dx >= 0) & (gx + fl[..., 0] - dx <= cw - 1) \
+            & (gy + fl[..., 1] - dy >= 0) & (gy + fl[..., 1] - dy <= ch - 1)
+        err = lambda a, b, m: np.abs(a.astype(np.float64) / 255 - b / 255).mean(-1)[m]  # noqa: E731
+        good = err(c[0], bilinear(c[2], gx + fl[..., 0] - dx, gy + fl[..., 1] - dy), noc)
+        stale = err(c[0], bilinear(c[2], gx + fl[..., 0], gy + fl[..., 1]), noc)
+        assert np.median(good) < 0.004 and np.median(stale) > 3 * np.median(good), (np.median(good), np.median(stale))
+        d, dnoc = s["disp_t"][win], s["noc_disp_t"][win] & (gx - s["disp_t"][win] >= 0)
+        assert err(c[0], bilinear(c[1], gx - d, gy), dnoc).mean() < 0.006
+    assert pipeline.DataConfig(augment_shift=0.1).augment_shift == 0.1
+    with pytest.raises(ValueError, match="data.augment_shift"):
+        pipeline.DataConfig(augment_shift=0.5)
+
+
+def test_augment_shift_leaves_the_other_draws_alone():
+    """Turning the shift on changes only the crop: the photometric and zoom draws come first, so the centre of
+    an unshifted window (dy = dx = 0 draws aside) carries the same colours."""
+    src = synthetic.render_sample(5, 64, 128)["cycle"]
+    plain = pipeline._Augment(True).random_map({"cycle": src}, np.random.default_rng(9))["cycle"]
+    shifted = pipeline._Augment(True, shift=0.1).random_map({"cycle": src}, np.random.default_rng(9))["cycle"]
+    r = np.random.default_rng(9)
+    pipeline.draw_augment(r)
+    y0, x0, dy, dx = pipeline.draw_shift(r, 64, 128, 0.1)
+    ch, cw = shifted.shape[1:3]
+    np.testing.assert_array_equal(shifted[0], plain[0, y0:y0 + ch, x0:x0 + cw])
+    np.testing.assert_array_equal(shifted[2], plain[2, y0 + dy:y0 + dy + ch, x0 + dx:x0 + dx + cw])

@@ -91,3 +91,16 @@ def test_default_working_size_is_the_one_that_wins_most_checks():
         return out
     assert real_images.pick_working_size(card(3)) == "native"
     assert real_images.pick_working_size(card(2)) == "trained"
+
+
+def test_shift_set_and_its_metrics_hand_case():
+    """`shift_set`: every pair's flow is its shift; `shift_metrics`: a prediction with the horizontal right and
+    the vertical at half its size scores gain 1 / 0.5 and EPE 0 / |dy| / 2 (the mean of 4 and 8 px: 3 px)."""
+    pairs = real_images.shift_set()
+    assert len(pairs) == 4 * len(real_images.SHIFTS)
+    for p in pairs:
+        np.testing.assert_allclose(p["flow"].reshape(-1, 2).mean(0), p["shift"], atol=1e-6)
+    flows = [p["flow"] * (np.array([1.0, 0.5]) if p["shift"][1] else 1.0) for p in pairs]
+    m = real_images.shift_metrics(flows, pairs)
+    assert m["gain_horizontal"] == pytest.approx(1.0) and m["gain_vertical"] == pytest.approx(0.5)
+    assert m["epe_horizontal"] == pytest.approx(0.0, abs=1e-6) and m["epe_vertical"] == pytest.approx(3.0)

@@ -23,13 +23,15 @@ rotating objects, varied rigs, per-camera photometric differences: `data.synthet
 stage 1 of the shipped `long` model (the demo model fine-tuned on them at 128x256, 4,000 steps, lr 5e-4);
 `long,real,selfsup` = its stage 2 (1,000 steps with the self-supervision term, lr 1.25e-4, initialised from
 stage 1's workdir `work/long`);
+`long,real,selfsup,motion` = its stage 3 (1,500 steps with vertical motion: `data.synthetic_scene=real_motion` and
+`data.augment_shift=0.08`, lr 2.5e-4 halved at 1,000, initialised from stage 2's workdir `work/long2`);
 `long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
 from bridge_jax.configs import default
 
-ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup")
+ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup", "motion")
 
 
 def get_config(arg=None):
@@ -82,6 +84,14 @@ def get_config(arg=None):
                 c.lr = 1.25e-4
                 c.loss.self_supervision = 0.3
                 c.loop.update(num_train_steps=1000, steps_per_epoch=1000, eval_every=250)
+                if "motion" in opts:  # stage 3: vertical motion (a rig that pitches, rolls and moves up and down,
+                    # objects that move vertically, frames t+1 cut up to 8 % of the height away from t), which
+                    # the scenes before it lacked, on top of the finished stage 2 (its workdir `work/long2`)
+                    c.init_from = "work/long2"
+                    c.lr = 2.5e-4
+                    c.data.synthetic_scene = "real_motion"
+                    c.data.augment_shift = 0.08
+                    c.loop.update(num_train_steps=1500, steps_per_epoch=250, eval_every=250)  # lr halves at 1000
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
         c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4

@@ -21,6 +21,8 @@ Augmentation (the paper's, each op independently with p = 0.5, one draw shared b
   * brightness ×U(0.5, 2.0); per-channel colour ×U(0.8, 1.2); clip to [0, 1] after each op.
   The photometric ops are per-pixel 256-entry lookup tables on the uint8 input, applied at full resolution
   and rounded to uint8 (upstream re-quantised to uint8 after every op; we round once).
+  Beyond the paper, both off by default: a zoom crop (`augment_zoom`, one window for all frames) and a shifted
+  crop (`augment_shift`, the t+1 window offset from the t one), drawn after the paper's ops.
 Resize (after augmentation, on uint8 as upstream's PIL resize): cv2 INTER_AREA when shrinking (anti-aliased,
 close to PIL's bilinear), INTER_LINEAR when enlarging; then /255 → float32.
 
@@ -233,6 +235,11 @@ class DataConfig:
       window of s x its size, s ~ U(augment_zoom, 1), the same window in all four frames (rows stay rectified),
       before the resize to the working size: motions and disparities grow by 1/s, as with a longer lens.
       1.0 = off (the paper).
+    augment_shift: geometric augmentation beyond the paper: with `augment`, frames t and t+1 are cut from
+      windows up to this fraction of the height apart, vertically and horizontally (`shift_crop`); each stereo
+      pair keeps one window, so it stays rectified, and the flow gains the windows' offset. It gives a model
+      vertical motion, which driving-like video (and the synthetic scenes before `real_motion`) hardly has.
+      0.0 = off (the paper).
     num_workers: grain worker processes (0 = decode in the training process).
     prefetch, read_threads, worker_buffer_size: grain read options.
     max_skip: consecutive unreadable cycles tolerated before the data folder is reported as broken.
@@ -244,8 +251,9 @@ class DataConfig:
     synthetic_num: cycles of the synthetic source per epoch (it is endless; this fixes the shuffle period).
     synthetic_scene: the synthetic source's scene settings, a name of `synthetic.SCENE_PRESETS`: "demo" (the
       demo's procedural look), "real" (photo textures, uniform regions, slanted and rotating objects, varied
-      rigs, larger motions, per-camera photometric differences: a domain that carries over to real images) or
-      "heldout" (settings kept for checking generalisation; do not train on it).
+      rigs, larger motions, per-camera photometric differences: a domain that carries over to real images),
+      "real_motion" (`real` plus vertical motion: rig pitch, roll and vertical translation, objects moving up
+      and down) or "heldout" (settings kept for checking generalisation; do not train on it).
     num_epochs: passes over the source (None = forever, the trainer's choice).
     """
 
@@ -254,13 +262,14 @@ class DataConfig:
     split: str = ""  # kitti_raw: all | kitti | eigen | a list file; tfds: the builder config
     augment: bool = True  # the paper's augmentation (flip, gamma, brightness, colour)
     augment_zoom: float = 1.0  # with augment, a random zoom crop of s in [augment_zoom, 1] (1 = off)
+    augment_shift: float = 0.0  # with augment, frames t+1 cut up to this fraction of the height away from t (0 = off)
     num_workers: int = 0  # grain worker processes (0 = decode in the training process)
     prefetch: int = 2  # grain read-ahead buffer (elements)
     read_threads: int = 1  # grain read threads
     worker_buffer_size: int = 2  # batches buffered per worker process
     max_skip: int = 100  # consecutive unreadable cycles tolerated before the folder is reported broken
     synthetic_num: int = DEFAULT_SYNTHETIC_NUM  # synthetic cycles per epoch (fixes the shuffle period)
-    synthetic_scene: str = "demo"  # synthetic scene settings: demo | real | heldout (synthetic.SCENE_PRESETS)
+    synthetic_scene: str = "demo"  # synthetic scene settings: demo | real | real_motion | heldout (synthetic.SCENE_PRESETS)
     num_epochs: Optional[int] = None  # passes over the source (None = forever, the trainer's choice)
     prescan: bool = True  # read every image header before training (folder | kitti_raw)
     val_dir: str = ""  # held-out frames of your own for validation ("" = synthetic validation)
@@ -272,6 +281,9 @@ class DataConfig:
             raise ValueError(f"data.source={self.source!r} needs data.data_dir")
         if not 0.1 <= float(self.augment_zoom) <= 1.0:
             raise ValueError(f"data.augment_zoom must be in [0.1, 1] (1 = off), got {self.augment_zoom!r}")
+        if not 0.0 <= float(self.augment_shift) <= 0.25:
+            raise ValueError(f"data.augment_shift must be in [0, 0.25] (a fraction of the height; 0 = off), got "
+                             f"{self.augment_shift!r}")
         if self.synthetic_scene not in synthetic.SCENE_PRESETS:
             raise ValueError(f"data.synthetic_scene must be one of {tuple(synthetic.SCENE_PRESETS)}, got "
                              f"{self.synthetic_scene!r}")
@@ -436,15 +448,50 @@ def zoom_crop(cycle: np.ndarray, rng: np.random.Generator, min_scale: float) -> 
     return cycle[:, y0:y0 + ch, x0:x0 + cw]
 
 
+def draw_shift(rng: np.random.Generator, height: int, width: int, max_shift: float) -> tuple[int, int, int, int]:
+    """One draw of `shift_crop`'s windows for a cycle of `height x width`: (y0, x0, dy, dx) = the top-left corner
+    of the t window and the offset of the t+1 window, |dy| <= m = round(max_shift * height) and |dx| <=
+    round(m * width / height), both windows inside the frame. (0, 0, 0, 0) when m < 1."""
+    m = int(round(max_shift * height))
+    if m < 1:
+        return 0, 0, 0, 0
+    mx = int(round(m * width / height))
+    dy, dx = int(rng.integers(-m, m + 1)), int(rng.integers(-mx, mx + 1))
+    y0 = int(rng.integers(max(0, -dy), m - max(0, dy) + 1))
+    x0 = int(rng.integers(max(0, -dx), mx - max(0, dx) + 1))
+    return y0, x0, dy, dx
+
+
+def shift_crop(cycle: np.ndarray, rng: np.random.Generator, max_shift: float) -> np.ndarray:
+    """Frames t and t+1 cut from windows `(dy, dx)` pixels apart (`draw_shift`): a window of (H - m) x
+    (W - mx) at (y0, x0) from left_t and right_t, the same size at (y0 + dy, x0 + dx) from left_t1 and
+    right_t1. Each stereo pair keeps one window, so it stays rectified with the same disparities; the flow
+    t -> t+1 gains (-dx, -dy) everywhere, the camera shake a rig without it never shows: the synthetic scenes'
+    flow is nearly all horizontal, so vertical motion of every size comes from here. `(4, H, W, C)` in,
+    `(4, H - m, W - mx, C)` out (the same cycle when m < 1)."""
+    _, h, w, _ = cycle.shape
+    y0, x0, dy, dx = draw_shift(rng, h, w, max_shift)
+    m = int(round(max_shift * h))
+    if m < 1:
+        return cycle
+    ch, cw = h - m, w - int(round(m * w / h))
+    t = cycle[:2, y0:y0 + ch, x0:x0 + cw]
+    t1 = cycle[2:, y0 + dy:y0 + dy + ch, x0 + dx:x0 + dx + cw]
+    return np.concatenate([t, t1])
+
+
 class _Augment(grain.transforms.RandomMap):
-    def __init__(self, enabled: bool, zoom: float = 1.0):
-        self.enabled, self.zoom = enabled, float(zoom)
+    def __init__(self, enabled: bool, zoom: float = 1.0, shift: float = 0.0):
+        self.enabled, self.zoom, self.shift = enabled, float(zoom), float(shift)
 
     def random_map(self, element: dict, rng: np.random.Generator) -> dict:
         if not self.enabled:
             return element
         cycle = apply_augment_uint8(element["cycle"], draw_augment(rng))
-        return {**element, "cycle": zoom_crop(cycle, rng, self.zoom)}
+        cycle = zoom_crop(cycle, rng, self.zoom)
+        if self.shift > 0:  # drawn last, so the draws above stay what they were without it
+            cycle = shift_crop(cycle, rng, self.shift)
+        return {**element, "cycle": cycle}
 
 
 class _Resize(grain.transforms.Map):
@@ -504,7 +551,7 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
     ds = ds[process_index::process_count]
     ds = ds.repeat(None if data.num_epochs is None else int(data.num_epochs))
     ds = ds.map(LoadCycle(src, int(data.max_skip), skips))
-    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom)),
+    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom), float(data.augment_shift)),
                        seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
     ds = ds.map(_Resize(height, width))
     ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(data.read_threads) or 1,

@@ -85,6 +85,13 @@ class SceneConfig:
     baseline_range: tuple = (1.0, 1.0)  # baseline drawn per sample, as multiples of the baseline argument
     cam_height_range: tuple = (1.5, 1.8)  # camera height above the ground (metres)
     photometric: float = 0.0           # strength of per-view gain/offset/gamma/blur/noise (`camera_response`)
+    # Vertical motion. The rig moves rigidly, so the stereo pairs stay rectified; without these, flow is
+    # almost only horizontal (forward, lateral and yaw motions), and a model trained on it learns to
+    # shrink vertical motion (a 3 px vertical shift of a real photo read as 0.4 px by `demo`).
+    max_ego_pitch: float = 0.0         # rig pitch between t and t+1, radians, U(-max, max)
+    max_ego_roll: float = 0.0          # rig roll between t and t+1, radians
+    max_ego_vertical: float = 0.0      # rig translation along the camera's y axis (metres per frame)
+    max_object_vertical_speed: float = 0.0  # vertical velocity of a moving object (metres per frame)
 
     def __post_init__(self):
         for name in ("photo_texture_prob", "textureless_prob", "slant_prob", "spin_prob"):
@@ -100,6 +107,9 @@ class SceneConfig:
                 raise ValueError(f"scene {name} must be (low, high) with 0 < low <= high, got {getattr(self, name)!r}")
         if self.photometric < 0 or self.max_spin < 0:
             raise ValueError("scene photometric and max_spin must be >= 0")
+        for name in ("max_ego_pitch", "max_ego_roll", "max_ego_vertical", "max_object_vertical_speed"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"scene {name} must be >= 0, got {getattr(self, name)!r}")
 
 
 SCENE_PRESETS = {
@@ -111,6 +121,13 @@ SCENE_PRESETS = {
                         photo_texture_prob=0.5, textureless_prob=0.1, slant_prob=0.5, spin_prob=0.3,
                         focal_range=(0.6, 1.6), baseline_range=(0.5, 1.6), cam_height_range=(1.0, 2.5),
                         photometric=1.0),
+    # `real` with vertical motion as well: the rig pitches, rolls and moves up and down between t and t+1,
+    # and moving objects also move vertically.
+    "real_motion": SceneConfig(max_object_speed=2.0, max_ego_forward=2.0, max_ego_lateral=0.2, max_ego_yaw=0.05,
+                               photo_texture_prob=0.5, textureless_prob=0.1, slant_prob=0.5, spin_prob=0.3,
+                               focal_range=(0.6, 1.6), baseline_range=(0.5, 1.6), cam_height_range=(1.0, 2.5),
+                               photometric=1.0, max_ego_pitch=0.04, max_ego_roll=0.03, max_ego_vertical=0.15,
+                               max_object_vertical_speed=0.6),
     # Held-out settings for checking generalisation: held-out photos only, stronger photometric differences,
     # a rig none of the presets above draws (longer focal, shorter baseline), more objects.
     "heldout": SceneConfig(min_objects=5, max_objects=10, max_object_speed=1.6, max_ego_forward=1.8,
@@ -371,8 +388,27 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
 
 
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], np.float64)
+
+
+def _vertical_ego(ego, extra: np.random.Generator, cfg: SceneConfig):
+    """`ego` (R_cw, centre at t+1) with the scene's rig pitch, roll and vertical translation added (draws
+    from `extra`; unchanged when all three are 0). The rotation is about the rig's own axes at t+1 and the
+    baseline turns with it (`_cameras`), so the right camera stays where the left one's x axis points."""
+    if not (cfg.max_ego_pitch or cfg.max_ego_roll or cfg.max_ego_vertical):
+        return ego
+    r_cw, centre = ego
+    pitch = extra.uniform(-cfg.max_ego_pitch, cfg.max_ego_pitch)
+    roll = extra.uniform(-cfg.max_ego_roll, cfg.max_ego_roll)
+    up = extra.uniform(-cfg.max_ego_vertical, cfg.max_ego_vertical)
+    return r_cw @ _rot_x(pitch) @ _rot_z(roll), centre + r_cw @ np.array([0.0, up, 0.0])
+
+
 def _vary_scene(layers: list, extra: np.random.Generator, cfg: SceneConfig) -> None:
-    """Applies the scene's photo/uniform textures, slants and spins to `layers` in place (draws from `extra`)."""
+    """Applies the scene's photo/uniform textures, slants, spins and vertical object motion to `layers` in
+    place (draws from `extra`)."""
     n_photos = None
     for layer in layers:
         u = extra.uniform()
@@ -394,6 +430,11 @@ def _vary_scene(layers: list, extra: np.random.Generator, cfg: SceneConfig) -> N
         if np.any(layer.velocity) and extra.uniform() < cfg.spin_prob:
             axis = extra.standard_normal(3)
             layer.spin = _axis_angle(axis / np.linalg.norm(axis), extra.uniform(-cfg.max_spin, cfg.max_spin))
+    # In a pass of its own, so the textures, slants and spins drawn above are those of the same scene without it.
+    for layer in layers:
+        if layer.is_object and np.any(layer.velocity) and cfg.max_object_vertical_speed > 0:
+            v = extra.uniform(-cfg.max_object_vertical_speed, cfg.max_object_vertical_speed)
+            layer.velocity = layer.velocity + np.array([0.0, v, 0.0])
 
 
 def camera_response(img: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
@@ -646,6 +687,7 @@ def render_sample(seed: int, height: int = 256, width: int = 512, *, focal: floa
     rng = np.random.default_rng(int(seed))
     layers, ego, (cx, cy) = _make_scene(rng, height, width, f, cfg)
     _vary_scene(layers, extra, cfg)
+    ego = _vertical_ego(ego, extra, cfg)
     cams = _cameras(f, cx, cy, baseline, ego)
     times = (0, 0, 1, 1)
     casts = [_cast_grid(layers, cam, tm, height, width) for cam, tm in zip(cams, times)]
