@@ -193,3 +193,24 @@ def test_earlier_stage_is_read_from_its_workdir_and_bad_values_are_refused(tmp_p
     assert "expected CONFIG=WORKDIR" in capsys.readouterr().err
     assert main(["build", "long", "--from", str(run), "--earlier-stage", f"x={tmp_path / 'missing'}"]) == 2
     assert (zoo.ZOO_DIR / "long.json").read_bytes() == before
+
+
+def test_after_shipped_takes_the_stages_from_the_shipped_card(tmp_path, capsys):
+    """`--after-shipped CONFIG=NAME`: a run that continued shipped model NAME lists NAME's own earlier stages,
+    then NAME itself (steps, init_from, lr, training time and machine from its card); a malformed value or a name
+    that is not a shipped model is one error line and exit code 2, before anything is written."""
+    from bridge_jax.zoo.__main__ import main
+    meta = zoo.info("long")
+    stages = zoo.shipped_stages("demo:long,real,selfsup", "long")
+    assert stages[:-1] == meta.get("earlier_stages", [])
+    assert stages[-1] == {"config": "demo:long,real,selfsup", "steps": meta["steps"],
+                          "init_from": meta["config"]["init_from"], "lr": meta["config"]["lr"],
+                          "seconds": meta["training"]["seconds"], "machine": meta["training"]["machine"]}
+    before = (zoo.ZOO_DIR / "long.json").read_bytes()
+    run = tmp_path / "run"
+    run.mkdir()
+    assert main(["build", "long", "--from", str(run), "--after-shipped", "no-equals"]) == 2
+    assert "expected CONFIG=NAME" in capsys.readouterr().err
+    assert main(["build", "long", "--from", str(run), "--after-shipped", "demo:long=nosuchmodel"]) == 2
+    assert "not a shipped model" in capsys.readouterr().err
+    assert (zoo.ZOO_DIR / "long.json").read_bytes() == before

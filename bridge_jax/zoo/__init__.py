@@ -258,6 +258,18 @@ def stage_summary(config: str, workdir: str | os.PathLike, machine: Optional[str
             "machine": machine or _this_machine()}
 
 
+def shipped_stages(config: str, name: str) -> list[dict]:
+    """The stages of shipped model `name` as earlier stages of a run that continued from its weights: the earlier
+    stages its card lists, then `name` itself as the newest, with `config` (the `--config` it ran) — what
+    `stage_summary` would have read from its workdir, read from its card instead (the workdir of a model shipped
+    by an earlier session need not be at hand)."""
+    meta = info(name)
+    cfg, training = meta.get("config") or {}, meta.get("training") or {}
+    itself = {"config": config, "steps": meta.get("steps"), "init_from": cfg.get("init_from", ""),
+              "lr": cfg.get("lr"), "seconds": training.get("seconds", 0.0), "machine": training.get("machine", "?")}
+    return [dict(s) for s in meta.get("earlier_stages") or []] + [itself]
+
+
 def _finished_run(workdir: str | os.PathLike, what: str) -> tuple[dict, int]:
     """(the recorded config, the step of the newest checkpoint) of a finished training workdir; ValueError naming
     `what` when it is not one."""
@@ -273,14 +285,16 @@ def _finished_run(workdir: str | os.PathLike, what: str) -> tuple[dict, int]:
 
 def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional[dict] = None,
                   card: Optional[dict] = None, machine: Optional[str] = None,
-                  earlier_stages: Sequence[tuple[str, str | os.PathLike]] = ()) -> Path:
+                  earlier_stages: Sequence[tuple[str, str | os.PathLike]] = (),
+                  after_shipped: Optional[tuple[str, str]] = None) -> Path:
     """Writes `<name>.npz` + `<name>.json` from a finished training workdir (maintainers: after the `demo`
     config changes, retrain with `make demo` and run `bridge-zoo build demo --from
     work/demo/train`). The json records the run's config so a test notices when the config moved on, and its
     card: the training time (`training_summary`) on `machine` (default: this one), plus the entries of `card`
     (e.g. {"real_images": numbers of experiments/real_images.py}) that `bridge-zoo show` prints.
     `earlier_stages`: (config, workdir) of the runs this one was initialised from, oldest first
-    (`stage_summary`)."""
+    (`stage_summary`); `after_shipped`: (config, name) of a shipped model those runs (or this one) continued,
+    whose own stages come first (`shipped_stages`, read before its files are overwritten)."""
     import io
 
     from bridge_jax import checkpointing, files, workdir as run_workdir  # heavy imports only for maintainers
@@ -296,8 +310,10 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
             "config": run_cfg, "steps": step, "sha256": hashlib.sha256(data).hexdigest(),
             "validation": validation if validation is not None else run_workdir.last_validation(str(workdir)),
             "training": dict(training_summary(workdir), machine=machine or _this_machine())}
-    if earlier_stages:
-        meta["earlier_stages"] = [stage_summary(c, d, machine) for c, d in earlier_stages]
+    stages = shipped_stages(*after_shipped) if after_shipped else []
+    stages += [stage_summary(c, d, machine) for c, d in earlier_stages]
+    if stages:
+        meta["earlier_stages"] = stages
     meta.update(card or {})
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)

@@ -4,6 +4,7 @@
     bridge-zoo show long                            # a shipped model's card: recipe, steps, time, numbers
     bridge-zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
     bridge-zoo build long --from work/long2 --earlier-stage demo:long,real=work/long --card work/long_card.json
+    bridge-zoo build long --from work/long3 --after-shipped demo:long,real,selfsup=long --card work/long_card.json
 
 `build` writes bridge_jax/zoo/<name>.npz (float32 params, compressed) and <name>.json (model, working size, the
 run's config, steps, training time and machine, last validation, SHA-256, and the entries of --card); the test suite checks the shipped model against the current
@@ -31,6 +32,10 @@ def build_parser():
     b.add_argument("--earlier-stage", dest="earlier_stages", action="append", default=[], metavar="CONFIG=WORKDIR",
                    help="a run this one was initialised from, with the --config it ran (repeat, oldest first), "
                         "e.g. demo:long,real=work/long: its steps, lr and training time join the card")
+    b.add_argument("--after-shipped", dest="after_shipped", default=None, metavar="CONFIG=NAME",
+                   help="this run (or its earliest --earlier-stage) continued the shipped model NAME, trained with "
+                        "--config CONFIG: NAME's stages, from its card, come first, e.g. "
+                        "demo:long,real,selfsup=long")
     s = sub.add_parser("show", help="print a shipped model's card (recipe, steps, training time, numbers)")
     s.add_argument("name", help="registry name of a shipped model (e.g. long)")
     cli.add_debug_flag(p)
@@ -59,7 +64,18 @@ def main(argv=None) -> int:
                     raise ValueError(f"--earlier-stage {spec!r}: expected CONFIG=WORKDIR, "
                                      "e.g. demo:long,real=work/long")
                 stages.append((config, stage_dir))
-            npz = zoo.build_shipped(args.name, args.workdir, card=card, machine=args.machine, earlier_stages=stages)
+            after = None
+            if args.after_shipped:
+                config, sep, shipped = args.after_shipped.rpartition("=")
+                if not sep or not config or not shipped:
+                    raise ValueError(f"--after-shipped {args.after_shipped!r}: expected CONFIG=NAME, "
+                                     "e.g. demo:long,real,selfsup=long")
+                if shipped not in zoo.names() or zoo.entry(shipped).kind != "shipped":
+                    raise ValueError(f"--after-shipped {args.after_shipped!r}: {shipped!r} is not a shipped model "
+                                     f"(shipped: {', '.join(n for n in zoo.names() if zoo.entry(n).kind == 'shipped')})")
+                after = (config, shipped)
+            npz = zoo.build_shipped(args.name, args.workdir, card=card, machine=args.machine, earlier_stages=stages,
+                                    after_shipped=after)
             print(f"wrote {npz}")
             return 0
         if args.command == "show":
