@@ -29,11 +29,14 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
 
 SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
     "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
-    "long": ("long,real,selfsup", "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, "
-                                  "stage 2 with `bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, "
-                                  "run experiments/real_images.py --models work/long2 --card work/long_card.json "
-                                  "and `bridge-zoo build long --from work/long2 --earlier-stage "
-                                  "demo:long,real=work/long --card work/long_card.json`"),
+    "long": ("long,real,selfsup,motion",
+             "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, stage 2 with "
+             "`bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, stage 3 with `bridge-train "
+             "--config=demo:long,real,selfsup,motion --workdir=work/long3`, run experiments/real_images.py --models "
+             "work/long3 --card work/long_card.json and `bridge-zoo build long --from work/long3 --earlier-stage "
+             "demo:long,real=work/long --earlier-stage demo:long,real,selfsup=work/long2 --card work/long_card.json` "
+             "(or, with only stage 3 retrained, `--after-shipped demo:long,real,selfsup=long` before the old long is "
+             "overwritten)"),
 }
 
 
@@ -61,10 +64,13 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     next to OpenCV's, from its card."""
     from bridge_jax.zoo.__main__ import main
     meta = zoo.info("long")
-    assert meta["config"]["data"]["synthetic_scene"] == "real" and meta["config"]["init_from"] == "work/long"
-    assert meta["config"]["loss"]["self_supervision"] > 0  # stage 2: the self-supervision term
-    (stage1,) = meta["earlier_stages"]  # stage 1: the demo model fine-tuned on the `real` scenes
+    # stage 3: vertical motion (the scenes and the shifted crop), on top of stage 2
+    assert meta["config"]["data"]["synthetic_scene"] == "real_motion" and meta["config"]["init_from"] == "work/long2"
+    assert meta["config"]["data"]["augment_shift"] > 0
+    assert meta["config"]["loss"]["self_supervision"] > 0  # the self-supervision term, since stage 2
+    stage1, stage2 = meta["earlier_stages"]  # the demo model fine-tuned on the `real` scenes, then self-supervised
     assert stage1["config"] == "demo:long,real" and stage1["init_from"] == "demo" and stage1["steps"] > 0
+    assert stage2["config"] == "demo:long,real,selfsup" and stage2["init_from"] == "work/long" and stage2["steps"] > 0
     assert meta["training"]["seconds"] > 0 and "core" in meta["training"]["machine"]
     assert set(meta["real_images"]) == {"motorcycle", "homography", "heldout_synthetic"}
     for by_size in meta["real_images"].values():
@@ -72,7 +78,7 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     assert main(["show", "long"]) == 0
     out = capsys.readouterr().out
     assert f"long: pwc_lite trained at 128x256, {meta['steps']} steps" in out
-    assert "scenes real" in out and meta["training"]["machine"] in out
+    assert "scenes real_motion" in out and meta["training"]["machine"] in out
     assert f"stage 1: --config=demo:long,real, {stage1['steps']} steps from demo" in out
     d1 = meta["real_images"]["motorcycle"]["native"]["d1_all"]
     line = next(ln for ln in out.splitlines() if "motorcycle @ native:" in ln)
