@@ -1,6 +1,6 @@
 r"""README main job: train the `demo` config on the built-in synthetic stereo video, then evaluate it.
 
-    bridge-demo --workdir=work/demo        # what `make demo` runs (about 11 min on 2 CPU cores)
+    bridge-demo --workdir=work/demo        # what `make demo` runs (7-15 min on 2 CPU cores)
 
 Steps:
   1. train bridge_jax/configs/demo.py into WORKDIR/train (resumes if interrupted: run the command again),
