@@ -91,6 +91,14 @@ def parse_working_size(text: str):
         raise argparse.ArgumentTypeError(f"expected HxW like 256x512, 'native' or 'trained', got {text!r}") from None
 
 
+def add_refine_option(parser: argparse.ArgumentParser) -> None:
+    """``--refine K``: test-time refinement passes (`inference.refine_maps`); None = the model card's choice."""
+    parser.add_argument("--refine", type=int, default=None, metavar="K",
+                        help="test-time refinement: run the network K more times per pair, each on the second image "
+                             "warped by the estimate so far, and add what it still finds (K+1 times the cost; 0 = "
+                             "off, at most 8); default: what a shipped model's card recommends, else 0")
+
+
 def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
     line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""

@@ -6,7 +6,9 @@
 
 The exported function is the predictor's network (`bridge_jax.inference.Predictor`) at its working size: it maps
 `pairs (B, H, W, 6)` float32 in [0, 1] (image_a RGB, image_b RGB at the working size) to a tuple `(px0, frac0)`,
-each `(B, H, W, 2)` float32: the full-resolution map in pixels and as fractions of (W, H). The working size
+each `(B, H, W, 2)` float32: the full-resolution map in pixels and as fractions of (W, H), after the
+predictor's test-time refinement passes (`--refine`, default: what a shipped model's card recommends, as for
+predict; `inference.refine_maps`). The working size
 `H x W` defaults to the size the checkpoint was trained at, else 256 x 512 (as for predict and evaluate); B is
 `--batch`. Load and run it without bridge_jax's model code:
 
@@ -33,7 +35,8 @@ from bridge_jax import cli, compile_cache, files, inference
 
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
     """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` at the predictor's working size, params as
-    constants; `task` picks the network of a separate-networks model."""
+    constants, with the predictor's `refine` passes; `task` picks the network of a separate-networks model (and
+    for "stereo" keeps the refinement on image rows)."""
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
     if task not in inference.PAIR_KINDS:
@@ -41,9 +44,15 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
     params = jax.tree.map(jnp.asarray, predictor.params)
     rows = predictor.net.static_rows((task == "stereo",) * batch)
 
+    keep_vertical = jnp.full((batch,), 0.0 if task == "stereo" else 1.0)
+
     def infer(pairs):
         maps = predictor.net(params, pairs, rows)
-        return maps["px"][0], maps["frac"][0]
+        if not predictor.refine:
+            return maps["px"][0], maps["frac"][0]
+        estimate = lambda x: predictor.net(params, x, rows)["px"][0]
+        px = inference.refine_maps(estimate, pairs, maps["px"][0], keep_vertical, predictor.refine)
+        return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
     return jax.export.export(jax.jit(infer))(spec)
@@ -79,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", choices=list(inference.PAIR_KINDS), default="flow",
                     help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
                          "stereo: left/right pairs); a shared network is the same for both")
+    cli.add_refine_option(ap)
     compile_cache.add_option(ap)
     cli.add_debug_flag(ap)
     return ap
@@ -91,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.batch < 1:   # checked before the (slow) checkpoint load
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
         predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
-                                             dtype=args.dtype, size_option="--height/--width")
+                                             dtype=args.dtype, size_option="--height/--width", refine=args.refine,
+                                             refine_option="--refine")
         exp = export_network(predictor, batch=args.batch, task=args.task)
         out = serialize_to_file(exp, args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
@@ -100,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         return cli.report_error(e, debug=args.debug)
     shape = [args.batch, predictor.height, predictor.width]
     print(json.dumps({"out": str(out), "bytes": out.stat().st_size, "model": predictor.model_cfg["name"],
-                      "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype}))
+                      "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype,
+                      "refine": predictor.refine}))
     return 0
 
 

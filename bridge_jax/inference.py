@@ -20,6 +20,10 @@ resize, batch and rescale the same way, which is the paper's evaluation protocol
 
 The map for (a, b) says where pixel (x, y) of `a` is found in `b`: at (x + u, y + v). Parameters stay
 float32; `dtype="bfloat16"` only changes the compute dtype.
+
+`refine=K` runs the network K more times per pair, each on `a` and `b` warped by the estimate so far, and
+composes the residual it finds with that estimate (`refine_maps`): test-time iterative residual refinement,
+the same network with no new weights, at K + 1 times the cost. A shipped model's card may recommend a K.
 """
 from __future__ import annotations
 
@@ -35,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, models, zoo
+from bridge_jax import checkpointing, geometry, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 
 DEFAULT_HEIGHT = 256
@@ -57,6 +61,8 @@ COMPILE_MODES = ("auto", "fast", "full")
 level 0 (`xla_backend_optimization_level=0`). On a 2-core AVX-512 VM (2026-12-02) that cut pwc_lite's compile
 from 8.3 to 3.7 s at 64x128 and from 19.9 to 6.3 s at 256x512 while each call got 12-26 % slower (20.5 -> 22.9 ms,
 294 -> 371 ms): a few pairs answer sooner "fast", long runs sooner "full". "auto": `compile_mode_for`."""
+MAX_REFINE = 8
+"""The most refinement passes `Predictor(refine=)` accepts (each costs one more network call per pair)."""
 FAST_COMPILE_PAIRS = 64
 """`compile_mode_for("auto", n)`: runs of at most this many pairs per working size compile "fast" (at 256x512
 the 13.6 s saved pay for ~180 slower calls; at 64x128 for ~2,000)."""
@@ -244,6 +250,42 @@ def _check_task(task: str) -> bool:
     return task == "stereo"
 
 
+def check_refine(refine: Any, option: str = "refine") -> int:
+    """`refine` as an int in 0..`MAX_REFINE`; ValueError naming `option` otherwise."""
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or not 0 <= refine <= MAX_REFINE:
+        raise ValueError(f"{option} {refine!r}: expected a whole number of refinement passes from 0 to {MAX_REFINE}")
+    return int(refine)
+
+
+def refine_maps(estimate, pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array, passes: int) -> jax.Array:
+    """Test-time iterative residual refinement of correspondence maps.
+
+    Each pass backward-warps image b by the current map D (`geometry.warp`, bilinear, border clamp), so that
+    what is left to find is a small residual R between a and warp(b, D), asks the network for it, and composes
+    the two: pixel x of a is found at x + R(x) in warp(b, D), which is b at x + R(x) + D(x + R(x)), so
+    D'(x) = R(x) + D(x + R(x)) (D sampled at the residual's end point, again by `geometry.warp`).
+
+    Args:
+      estimate: pair inputs `(N, H, W, 6)` -> maps `(N, H, W, 2)` in working pixels (the network).
+      pairs: `(N, H, W, 6)` = [image a, image b].
+      maps: `(N, H, W, 2)`, the first estimate.
+      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows, whose vertical component is
+        dropped before each warp (a stereo match lies on the same row).
+      passes: how many passes (static); one compiled copy of the network serves them all (`lax.fori_loop`).
+    Returns:
+      `(N, H, W, 2)` refined maps.
+    """
+    image_a, image_b = pairs[..., :3], pairs[..., 3:]
+    mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], axis=-1)[:, None, None, :]
+
+    def one_pass(_, d):
+        d = d * mask
+        residual = estimate(jnp.concatenate([image_a, geometry.warp(image_b, d)], axis=-1)) * mask
+        return residual + geometry.warp(d, residual)
+
+    return jax.lax.fori_loop(0, passes, one_pass, maps)
+
+
 # --------------------------------------------------------------------------------------------------------
 # Predictor
 # --------------------------------------------------------------------------------------------------------
@@ -264,6 +306,8 @@ class Predictor:
       compile_mode: "full" (default) or "fast" (`COMPILE_MODES`: quicker to compile, slower per call), or
         "auto" = "full"; settable later through the `compile_mode` attribute (`compile_mode_for` picks one for a
         run whose number of pairs is known, as the commands do).
+      refine: test-time refinement passes after the first estimate (`refine_maps`; 0 = none, at most
+        `MAX_REFINE`); settable later through the `refine` attribute (each value compiles once).
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
     """
@@ -271,10 +315,13 @@ class Predictor:
     native = False
     max_pixels = NATIVE_MAX_PIXELS
     model_name = "resnet_md"
+    refine = 0
 
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                  dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None,
-                 native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS, compile_mode: str = "full"):
+                 native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS, compile_mode: str = "full",
+                 refine: int = 0):
+        self.refine = check_refine(refine)
         self.model_cfg = dict(model_cfg) if model_cfg else None
         self.model_name = (model_cfg or {}).get("name", "resnet_md")
         models.check_working_size(self.model_name, height, width)
@@ -300,13 +347,15 @@ class Predictor:
         if fn is None:
             options = {"xla_backend_optimization_level": 0} if self.compile_mode == "fast" else None
             shardings = {} if self.mesh is None else {"out_shardings": NamedSharding(self.mesh, P())}
-            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2,), compiler_options=options,
-                                                    **shardings)
+            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2, 4),
+                                                         compiler_options=options, **shardings)
         return fn
 
-    def _forward(self, params, pairs, rows):
+    def _forward(self, params, pairs, rows, keep_vertical, refine):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return self.net(params, pairs, rows)["px"][0]
+        estimate = lambda x: self.net(params, x, rows)["px"][0]
+        maps = estimate(pairs)
+        return refine_maps(estimate, pairs, maps, keep_vertical, refine) if refine else maps
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
@@ -316,13 +365,15 @@ class Predictor:
 
     def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
         """The compiled network on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps
-        (N a multiple of the mesh size); `is_stereo` one bool per row."""
-        return self._net(self.params, pairs, self.net.static_rows(is_stereo))
+        (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`)."""
+        return self._net(self.params, pairs, self.net.static_rows(is_stereo), _keep_vertical(is_stereo),
+                         self.refine)
 
     def lower(self, batch: int, is_stereo: bool = False):
         """`jax.stages.Lowered` of the network for `batch` pairs (compile time, cost and memory analysis)."""
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
-        return self._net.lower(self.params, spec, self.net.static_rows((is_stereo,) * batch))
+        rows = (is_stereo,) * batch
+        return self._net.lower(self.params, spec, self.net.static_rows(rows), _keep_vertical(rows), self.refine)
 
     def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
         """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.
@@ -381,18 +432,20 @@ class Predictor:
         """
         out: list[Optional[np.ndarray]] = [None] * len(jobs)
         stereo = [_check_task(task) for task, _, _ in jobs]
-        if not self.separate:
-            stereo = [False] * len(jobs)  # one shared network: no need to split (and pad) by task
+        # one shared network: no need to split (and pad) by task; the rows still say which are stereo (refining)
+        groups = stereo if self.separate else [False] * len(jobs)
         sizes = [self.working_size(*input_size(a)) for _, a, _ in jobs]
-        for kind in dict.fromkeys(zip(stereo, sizes)):
-            idx = [i for i, key in enumerate(zip(stereo, sizes)) if key == kind]
+        for kind in dict.fromkeys(zip(groups, sizes)):
+            idx = [i for i, key in enumerate(zip(groups, sizes)) if key == kind]
             size = batch or len(idx)
             for start in range(0, len(idx), size):
                 chunk = idx[start:start + size]
                 pairs = np.concatenate([self.prepare([jobs[i][1]], [jobs[i][2]])[0] for i in chunk])
+                rows = [stereo[i] for i in chunk]
                 if len(chunk) < size:
                     pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
-                for i, m in zip(chunk, self.run_network(pairs, kind[0])):
+                    rows += rows[-1:] * (size - len(chunk))
+                for i, m in zip(chunk, self.run_network(pairs, rows)):
                     out[i] = m
         return out  # type: ignore[return-value]
 
@@ -432,6 +485,11 @@ class Predictor:
         return {"disp_t": disp_t, "disp_t1": disp_t1, "flow": flow}
 
 
+def _keep_vertical(is_stereo: Sequence[bool]) -> np.ndarray:
+    """`(N,)` float32: 0 for stereo rows (their vertical component is dropped while refining), 1 for flow."""
+    return np.array([0.0 if s else 1.0 for s in is_stereo], np.float32)
+
+
 def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
     """(height, width) a training workdir (or one of its step dirs) was trained at, from its config.json, or a
     shipped model (by name) was trained at; None for params-only checkpoints or when unknown."""
@@ -464,7 +522,8 @@ def resize_notice(predictor: Predictor, height: int, width: int, factor: float =
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,
                    dtype: Any = None, size_option: str = "working size", native: bool = False,
                    max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None,
-                   compile_mode: str = "full") -> Predictor:
+                   compile_mode: str = "full", refine: Optional[int] = None,
+                   refine_option: str = "refine") -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
@@ -474,10 +533,13 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     `dtype=None` uses the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
     `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
     "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
-    `DEFAULT_WORKING_SIZE`.
-    Raises ValueError naming the checkpoint (missing, unreadable), or `size_option` (how the caller's user
-    gave the size, e.g. "--working-size") with the model's input multiple and a size that fits.
+    `DEFAULT_WORKING_SIZE`. `refine`: test-time refinement passes (`Predictor`); None = what a shipped model's
+    card recommends (`zoo.default_refine`), else 0.
+    Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
+    gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or
+    `refine_option` for a refine count out of range.
     """
+    refine = check_refine(zoo.default_refine(path) if refine is None else refine, refine_option)
     if working_size is None and height is None and width is None and not native:
         working_size = zoo.default_working_size(path) or DEFAULT_WORKING_SIZE
     if working_size == NATIVE:
@@ -497,7 +559,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     if dtype is None:
         dtype = cfg.get("dtype")
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate,
-                     native=native, max_pixels=max_pixels, compile_mode=compile_mode)
+                     native=native, max_pixels=max_pixels, compile_mode=compile_mode, refine=refine)
 
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",

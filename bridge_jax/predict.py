@@ -673,6 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
+    cli.add_refine_option(p)
     p.add_argument("--batch", type=int, default=4,
                    help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
@@ -734,7 +735,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size",
+                                                  size_option="--working-size", refine=args.refine,
+                                                  refine_option="--refine",
                                                   compile_mode=inference.compile_mode_for(args.compile, None))
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
@@ -742,13 +744,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size",
+                                                  size_option="--working-size", refine=args.refine,
+                                                  refine_option="--refine",
                                                   compile_mode=inference.compile_mode_for(args.compile,
                                                                                           source.num_pairs))
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
-                                  info={"checkpoint": args.checkpoint})
+                                  info={"checkpoint": args.checkpoint, "refine": predictor.refine})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))

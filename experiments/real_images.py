@@ -23,7 +23,9 @@ next to OpenCV on the same inputs at full resolution:
 
 Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
 panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
-first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`).
+first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`; at the first
+`--refine` value, which the card then recommends). `--refine 0,2` scores each model without and with two
+test-time refinement passes (`inference.refine_maps`); the default, `card`, runs each model as its card says.
 """
 from __future__ import annotations
 
@@ -361,6 +363,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", default="demo", help="comma list of shipped model names or checkpoint paths")
     p.add_argument("--sizes", default="trained,native", help="comma list: trained, native, or HxW")
+    p.add_argument("--refine", default="card",
+                   help="comma list of test-time refinement passes to score (each a method), or 'card' = what "
+                        "each model's card recommends (0 for a checkpoint path)")
     p.add_argument("--per-photo", type=int, default=3, help="homography pairs per held-out photo")
     p.add_argument("--synthetic-num", type=int, default=16, help="held-out synthetic frames")
     p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
@@ -373,15 +378,19 @@ def main(argv=None) -> int:
     methods: dict = {"zero motion": "zero", opencv: "opencv"}
     card_labels = {}
     for i, model in enumerate(m for m in args.models.split(",") if m):
+        passes = [None] if args.refine == "card" else [int(v) for v in args.refine.split(",") if v]
         for size in [s for s in args.sizes.split(",") if s]:
             ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
-            pred = inference.load_predictor(model, working_size=ws)
-            label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
-            if size == "trained":
-                label += f" ({pred.height}x{pred.width})"
-            methods[label] = pred
-            if i == 0:
-                card_labels[size] = label
+            for k, refine in enumerate(passes):
+                pred = inference.load_predictor(model, working_size=ws, refine=refine, refine_option="--refine")
+                label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
+                if size == "trained":
+                    label += f" ({pred.height}x{pred.width})"
+                if pred.refine:
+                    label += f", refine {pred.refine}"
+                methods[label] = pred
+                if i == 0 and k == 0:
+                    card_labels[size] = label
     results = run_checks(methods, per_photo=args.per_photo, synthetic_num=args.synthetic_num,
                          pictures=args.pictures)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -399,8 +408,9 @@ def main(argv=None) -> int:
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
                         "opencv": results[check][opencv]} for check in checks}
         with open(args.card, "w") as f:
+            refine = methods[next(iter(card_labels.values()))].refine  # the first --refine value's numbers
             json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}",
-                       "default_working_size": pick_working_size(card)}, f, indent=1)
+                       "default_working_size": pick_working_size(card), "default_refine": refine}, f, indent=1)
     return 0
 
 

@@ -30,6 +30,22 @@ def test_export_round_trip(tiny_ckpt, tmp_path):
     assert "stablehlo" in loaded.mlir_module() or "func.func" in loaded.mlir_module()
 
 
+def test_export_with_refinement_is_the_refined_predictor(tiny_ckpt, tmp_path):
+    """A predictor with `refine=1` exports its refined maps: the artifact gives what `run_network` gives (the
+    refinement itself is checked against hand-built cases in test_refine.py), and frac0 = px0 / (W, H)."""
+    graphdef, params, _ = tiny_ckpt
+    predictor = inference.Predictor(graphdef, params, height=64, width=128,
+                                    model_cfg=models.model_config("resnet_md_tiny"), refine=1)
+    loaded = export.load_exported(export.serialize_to_file(export.export_network(predictor, batch=2),
+                                                           tmp_path / "r.stablehlo"))
+    x = np.random.default_rng(1).uniform(size=(2, 64, 128, 6)).astype(np.float32)
+    px, frac = loaded.call(x)
+    np.testing.assert_allclose(px, predictor.run_network(x), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(frac, np.asarray(px) / np.array([128, 64], np.float32), rtol=1e-6)
+    plain = jax.jit(lambda p, x: models.apply(graphdef, p, x))(params, x)["px"][0]
+    assert np.abs(np.asarray(px) - np.asarray(plain)).max() > 1e-3  # the pass is in the artifact
+
+
 def test_export_cli(tiny_ckpt, tmp_path, capsys):
     _, params, path = tiny_ckpt
     out = tmp_path / "cli.stablehlo"

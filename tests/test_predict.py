@@ -274,9 +274,30 @@ def test_bad_inputs(tiny_checkpoint, frames, tmp_path, capsys):
     assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(tmp_path / "o5"), "--raw", "png,tiff"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--raw png,tiff" in err[0] and "tiff" in err[0] and "flo" in err[0]
+    assert _run(["--checkpoint", tiny_checkpoint, a, b, "--out", str(tmp_path / "o6"), "--refine", "9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: --refine 9: expected a whole number of refinement passes from 0 to 8"]
     # nothing half-written next to the requested outputs
     leftovers = [f for f in os.listdir(tmp_path) if f.startswith(".")]
-    assert leftovers == [] and not any((tmp_path / f"o{i}").exists() for i in range(1, 6))
+    assert leftovers == [] and not any((tmp_path / f"o{i}").exists() for i in range(1, 7))
+
+
+def test_refine_option_runs_the_refined_network_and_says_so(tiny_checkpoint, frames, tmp_path):
+    """`--refine 1`: the written flow is the refined predictor's (not the plain one's), and predict.json says
+    how many passes ran; without the option a checkpoint path runs unrefined."""
+    from bridge_jax import inference
+    a, b = _write(tmp_path / "a.png", frames[0]), _write(tmp_path / "b.png", frames[1])
+    outs = {}
+    for k in (0, 1):
+        out = tmp_path / f"r{k}"
+        args = ["--checkpoint", tiny_checkpoint, a, b, "--out", str(out), "--working-size", "128x256", "--raw", "npy"]
+        assert _run(args + (["--refine", str(k)] if k else [])) == 0
+        assert json.loads((out / "predict.json").read_text())["refine"] == k
+        outs[k] = np.load(out / "flow_npy" / "a.npy")
+    want = inference.load_predictor(tiny_checkpoint, working_size=(128, 256), refine=1).predict_pair(
+        cv2.imread(a)[..., ::-1], cv2.imread(b)[..., ::-1])
+    np.testing.assert_allclose(outs[1], want, rtol=1e-5, atol=1e-5)
+    assert np.abs(outs[1] - outs[0]).max() > 1e-4  # the pass changed the map
 
 
 def _help_lines(parser):

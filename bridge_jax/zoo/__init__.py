@@ -215,6 +215,13 @@ def default_working_size(spec: str | os.PathLike) -> Optional[str]:
     return None if meta is None else meta.get("default_working_size")
 
 
+def default_refine(spec: str | os.PathLike) -> int:
+    """The test-time refinement passes a shipped model's card recommends (`inference.refine_maps`; chosen by
+    its real-image checks), or 0 (no card entry, or not a shipped model)."""
+    meta = _shipped_info(spec)
+    return 0 if meta is None else int(meta.get("default_refine", 0))
+
+
 def resolve_path(spec: str | os.PathLike) -> str:
     """A registry name of a local entry → its folder; a path → itself; a shipped name → ValueError (it has no
     folder: use `load_params`)."""
@@ -353,6 +360,9 @@ def card_lines(name: str) -> list[str]:
     if meta.get("default_working_size"):
         lines.append(f"  default working size: {meta['default_working_size']} (the one that won more of its "
                      "real-image checks; --working-size overrides it)")
+    if meta.get("default_refine"):
+        lines.append(f"  default refinement: {meta['default_refine']} pass(es) (chosen by its real-image checks, whose "
+                     "numbers below are with it; --refine overrides it)")
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
             lines.append(f"  {check} @ {size}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
