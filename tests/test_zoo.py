@@ -29,13 +29,15 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
 
 SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
     "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
-    "long": ("long,real,selfsup,motion",
+    "long": ("long,real,selfsup,motion,census",
              "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, stage 2 with "
              "`bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, stage 3 with `bridge-train "
-             "--config=demo:long,real,selfsup,motion --workdir=work/long3`, run experiments/real_images.py --models "
-             "work/long3 --card work/long_card.json and `bridge-zoo build long --from work/long3 --earlier-stage "
-             "demo:long,real=work/long --earlier-stage demo:long,real,selfsup=work/long2 --card work/long_card.json` "
-             "(or, with only stage 3 retrained, `--after-shipped demo:long,real,selfsup=long` before the old long is "
+             "--config=demo:long,real,selfsup,motion --workdir=work/long3`, stage 4 with `bridge-train "
+             "--config=demo:long,real,selfsup,motion,census --workdir=work/long4`, run experiments/real_images.py "
+             "--models work/long4 --refine 1 --card work/long_card.json and `bridge-zoo build long --from work/long4 "
+             "--earlier-stage demo:long,real=work/long --earlier-stage demo:long,real,selfsup=work/long2 "
+             "--earlier-stage demo:long,real,selfsup,motion=work/long3 --card work/long_card.json` (or, with only "
+             "stage 4 retrained, `--after-shipped demo:long,real,selfsup,motion=long` before the old long is "
              "overwritten)"),
 }
 
@@ -64,13 +66,17 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     next to OpenCV's, from its card."""
     from bridge_jax.zoo.__main__ import main
     meta = zoo.info("long")
-    # stage 3: vertical motion (the scenes and the shifted crop), on top of stage 2
-    assert meta["config"]["data"]["synthetic_scene"] == "real_motion" and meta["config"]["init_from"] == "work/long2"
+    # stage 4: the census photometric term, on top of stage 3
+    assert meta["config"]["loss"]["photometric"] == "census" and meta["config"]["init_from"] == "work/long3"
+    assert meta["config"]["data"]["synthetic_scene"] == "real_motion"  # vertical motion, since stage 3
     assert meta["config"]["data"]["augment_shift"] > 0
     assert meta["config"]["loss"]["self_supervision"] > 0  # the self-supervision term, since stage 2
-    stage1, stage2 = meta["earlier_stages"]  # the demo model fine-tuned on the `real` scenes, then self-supervised
+    # the demo model fine-tuned on the `real` scenes, then self-supervised, then taught vertical motion
+    stage1, stage2, stage3 = meta["earlier_stages"]
     assert stage1["config"] == "demo:long,real" and stage1["init_from"] == "demo" and stage1["steps"] > 0
     assert stage2["config"] == "demo:long,real,selfsup" and stage2["init_from"] == "work/long" and stage2["steps"] > 0
+    assert stage3["config"] == "demo:long,real,selfsup,motion" and stage3["init_from"] == "work/long2"
+    assert stage3["steps"] > 0
     assert meta["training"]["seconds"] > 0 and "core" in meta["training"]["machine"]
     assert set(meta["real_images"]) == {"motorcycle", "homography", "heldout_synthetic"}
     for by_size in meta["real_images"].values():
@@ -84,6 +90,18 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     line = next(ln for ln in out.splitlines() if "motorcycle @ native:" in ln)
     assert f"d1_all {d1:.3f}" in line
     assert f"default working size: {meta['default_working_size']}" in out
+    assert f"default refinement: {meta['default_refine']} pass(es)" in out and meta["default_refine"] >= 1
+
+
+def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
+    """`long`'s card recommends test-time refinement passes, which load_predictor then uses unless told
+    otherwise; a checkpoint path (no card) and the demo (no entry) run unrefined."""
+    meta = zoo.info("long")
+    assert zoo.default_refine("long") == meta["default_refine"] >= 1
+    assert inference.load_predictor("long").refine == meta["default_refine"]
+    assert inference.load_predictor("long", refine=0).refine == 0
+    assert zoo.default_refine("demo") == 0 and inference.load_predictor("demo").refine == 0
+    assert zoo.default_refine(str(tmp_path)) == 0 and zoo.default_refine("no-such-name") == 0
 
 
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():

@@ -25,13 +25,15 @@ stage 1 of the shipped `long` model (the demo model fine-tuned on them at 128x25
 stage 1's workdir `work/long`);
 `long,real,selfsup,motion` = its stage 3 (1,500 steps with vertical motion: `data.synthetic_scene=real_motion` and
 `data.augment_shift=0.08`, lr 2.5e-4 halved at 1,000, initialised from stage 2's workdir `work/long2`);
+`long,real,selfsup,motion,census` = its stage 4 (1,000 steps with the census photometric term,
+`loss.photometric=census`, at a constant lr 1.25e-4, initialised from stage 3's workdir `work/long3`);
 `long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
 from bridge_jax.configs import default
 
-ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup", "motion")
+ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup", "motion", "census")
 
 
 def get_config(arg=None):
@@ -96,6 +98,13 @@ def get_config(arg=None):
                     c.data.synthetic_scene = "real_motion"
                     c.data.augment_shift = 0.08
                     c.loop.update(num_train_steps=1500, steps_per_epoch=250, eval_every=250)  # lr halves at 1000
+                    if "census" in opts:  # stage 4: the census photometric term (robust to the exposure and
+                        # gain differences between real cameras, which SSIM + L1 only partly absorbs), at stage
+                        # 2's lr, on top of the finished stage 3 (its workdir `work/long3`)
+                        c.init_from = "work/long3"
+                        c.lr = 1.25e-4
+                        c.loss.photometric = "census"
+                        c.loop.update(num_train_steps=1000, steps_per_epoch=1000)  # constant lr
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
         c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4
