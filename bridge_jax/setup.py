@@ -123,7 +123,8 @@ class RunOptions:
     micro_batch: int = -1  # pair-forwards per device per call: 0 = one jitted step, -1 = auto (2 on CPU)
     init_from: str = ""  # initial params: a checkpoint folder or a shipped model name ("" = random init)
     compilation_cache_dir: str = "auto"  # XLA cache: auto = per user, workdir = <workdir>/xla_cache, "" = off, a folder
-    num_devices: int = -1  # devices of the ('data',) mesh: -1 = all, N = the first N (single process)
+    num_devices: int = -1  # devices of the ('data',) mesh: -1 = all (single process: all that divide global_batch),
+    # N = the first N (single process)
 
     def __post_init__(self):
         for name in ("height", "width", "global_batch", "seed", "micro_batch", "num_devices"):
@@ -278,10 +279,17 @@ def _initialize_distributed(d: DistributedConfig) -> None:
     jax.distributed.initialize(**kw)
 
 
-def _mesh_devices(num_devices: int, num_processes: int) -> tuple:
-    """All devices (num_devices = -1) or the first N local ones (single process only)."""
+def _mesh_devices(num_devices: int, num_processes: int, global_batch: int) -> tuple:
+    """All devices (num_devices = -1) or the first N local ones (single process only).
+
+    With -1 in a single process, a global batch that the devices do not divide (the demo's one cycle per step on
+    a 2-GPU machine) runs on the most devices that divide it, not on all: the batch is sharded over the mesh,
+    so more devices than that could not be used anyway."""
     if num_devices == -1:
-        return tuple(jax.devices())
+        devices = tuple(jax.devices())
+        if num_processes == 1 and global_batch > 0 and global_batch % len(devices):
+            devices = devices[:max(n for n in range(1, len(devices) + 1) if global_batch % n == 0)]
+        return devices
     if num_processes > 1:
         raise ConfigError("config.num_devices must be -1 (all devices) in a multi-process run")
     if not 1 <= num_devices <= jax.local_device_count():
@@ -356,7 +364,7 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     if devices is None:
         _initialize_distributed(typed[DistributedConfig])
         nproc = jax.process_count() if num_processes is None else num_processes
-        devices = _mesh_devices(opts.num_devices, nproc)
+        devices = _mesh_devices(opts.num_devices, nproc, opts.global_batch)
     else:
         nproc = 1 if num_processes is None else num_processes
     devices = tuple(devices)

@@ -133,3 +133,18 @@ def test_train_cli_refuses_a_negative_step_count_in_one_line(tmp_path, capsys):
     assert code == 2 and err.strip().splitlines() == [
         "error: config.loop.num_train_steps=-5: must be an integer >= 1, or -1 (derive from the data)"]
     assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize("batch, used", [(16, 8), (8, 8), (6, 6), (9, 3), (7, 7), (1, 1)])
+def test_all_devices_means_those_that_divide_the_global_batch(batch, used):
+    """num_devices=-1 in one process on this 8-device session: the mesh is the most devices that divide
+    global_batch (a batch of 9 cycles: 3 devices of 3), all 8 when they do; an explicit count is never changed."""
+    cfg = configs.load("demo")
+    cfg.global_batch = batch
+    assert cfg.num_devices == -1 and len(jax.devices()) == 8
+    run = setup.parse(cfg)
+    assert run.num_devices == used and run.devices == tuple(jax.devices()[:used])
+    cfg.num_devices = 8
+    if batch % 8:
+        with pytest.raises(setup.ConfigError, match=rf"config.global_batch={batch} is not divisible by the 8 devices"):
+            setup.parse(cfg)

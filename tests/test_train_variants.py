@@ -38,7 +38,12 @@ def test_config_builds_and_documents_its_command_line(name):
     assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge-demo" in mod.__doc__)
     cfg = mod.get_config()
     run = setup.parse(cfg, devices=jax.devices()[:1])
-    setup.parse(cfg, devices=jax.devices()[:2])
+    if cfg.global_batch % 2 == 0:
+        setup.parse(cfg, devices=jax.devices()[:2])
+    else:  # the demo's one cycle per step: one clear refusal on a 2-device mesh; the trainer's own choice runs it
+        with pytest.raises(setup.ConfigError, match=r"config.global_batch=1 is not divisible by the 2 devices"):
+            setup.parse(cfg, devices=jax.devices()[:2])
+        assert setup.parse(cfg).num_devices == 1  # num_devices=-1 on this 8-device test session
     lcfg, mcfg = run.loss, run.model.config
     assert mcfg["name"] in models.NAMES
     expected = {"stereo_only": ("stereo_only", "none"), "flow_only": ("flow_only", "none"),
