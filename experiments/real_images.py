@@ -329,11 +329,14 @@ HEADLINE = (("motorcycle", "d1_all"), ("motorcycle", "epe_all"), ("homography", 
 
 
 def pick_working_size(card: dict) -> str:
-    """"native" when the native size wins more of the `HEADLINE` numbers than the trained size, else
-    "trained" (what the model's card then recommends, and `--working-size` defaults to)."""
-    wins = sum(card[c]["native"][k] < card[c]["trained"][k] for c, k in HEADLINE
-               if "native" in card[c] and "trained" in card[c])
-    return "native" if wins > len(HEADLINE) / 2 else "trained"
+    """"native" when the native size wins more of the `HEADLINE` numbers than the trained size does, else
+    "trained" (what the model's card then recommends, and `--working-size` defaults to). A tie on a number (a
+    check whose images are the trained size, so both sizes run the same) counts for neither."""
+    pairs = [(card[c]["native"][k], card[c]["trained"][k]) for c, k in HEADLINE
+             if "native" in card[c] and "trained" in card[c]]
+    native_wins = sum(n < t for n, t in pairs)
+    trained_wins = sum(t < n for n, t in pairs)
+    return "native" if native_wins > trained_wins else "trained"
 
 
 def markdown(results: dict, header: str) -> str:

@@ -82,15 +82,20 @@ def test_random_homography_keeps_motion_moderate(seed):
 
 
 def test_default_working_size_is_the_one_that_wins_most_checks():
-    def card(native_better):
+    """5 headline numbers: native wins 3 of them -> native; 2 -> trained; with the other numbers tied (a check
+    run at the trained size either way), 2 native wins against 1 -> native, 1 against 1 -> trained."""
+    def card(native_better, tied=0):
         out = {}
         for i, (check, key) in enumerate(real_images.HEADLINE):
             out.setdefault(check, {"trained": {}, "native": {}})
             out[check]["trained"][key] = 1.0
-            out[check]["native"][key] = 0.5 if i < native_better else 2.0
+            out[check]["native"][key] = 0.5 if i < native_better else 1.0 if i < native_better + tied else 2.0
         return out
     assert real_images.pick_working_size(card(3)) == "native"
     assert real_images.pick_working_size(card(2)) == "trained"
+    assert real_images.pick_working_size(card(2, tied=2)) == "native"
+    assert real_images.pick_working_size(card(1, tied=3)) == "trained"
+    assert real_images.pick_working_size(card(0, tied=5)) == "trained"
 
 
 def test_shift_set_and_its_metrics_hand_case():

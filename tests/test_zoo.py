@@ -29,16 +29,18 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
 
 SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
     "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
-    "long": ("long,real,selfsup,motion,census",
+    "long": ("long,real,selfsup,motion,census,hires",
              "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, stage 2 with "
              "`bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, stage 3 with `bridge-train "
              "--config=demo:long,real,selfsup,motion --workdir=work/long3`, stage 4 with `bridge-train "
-             "--config=demo:long,real,selfsup,motion,census --workdir=work/long4`, run experiments/real_images.py "
-             "--models work/long4 --refine 1 --card work/long_card.json and `bridge-zoo build long --from work/long4 "
-             "--earlier-stage demo:long,real=work/long --earlier-stage demo:long,real,selfsup=work/long2 "
-             "--earlier-stage demo:long,real,selfsup,motion=work/long3 --card work/long_card.json` (or, with only "
-             "stage 4 retrained, `--after-shipped demo:long,real,selfsup,motion=long` before the old long is "
-             "overwritten)"),
+             "--config=demo:long,real,selfsup,motion,census --workdir=work/long4`, stage 5 with `bridge-train "
+             "--config=demo:long,real,selfsup,motion,census,hires --workdir=work/long5`, run "
+             "experiments/real_images.py --models work/long5 --refine 1 --card work/long_card.json and "
+             "`bridge-zoo build long --from work/long5 --earlier-stage demo:long,real=work/long --earlier-stage "
+             "demo:long,real,selfsup=work/long2 --earlier-stage demo:long,real,selfsup,motion=work/long3 "
+             "--earlier-stage demo:long,real,selfsup,motion,census=work/long4 --card work/long_card.json` (or, with "
+             "only stage 5 retrained, `--after-shipped demo:long,real,selfsup,motion,census=long` before the old "
+             "long is overwritten)"),
 }
 
 
@@ -66,24 +68,27 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     next to OpenCV's, from its card."""
     from bridge_jax.zoo.__main__ import main
     meta = zoo.info("long")
-    # stage 4: the census photometric term, on top of stage 3
-    assert meta["config"]["loss"]["photometric"] == "census" and meta["config"]["init_from"] == "work/long3"
+    # stage 5: stage 4's recipe at 256x512, on top of stage 4
+    assert (meta["height"], meta["width"]) == (256, 512) and meta["config"]["init_from"] == "work/long4"
+    assert meta["config"]["loss"]["photometric"] == "census"  # the census photometric term, since stage 4
     assert meta["config"]["data"]["synthetic_scene"] == "real_motion"  # vertical motion, since stage 3
     assert meta["config"]["data"]["augment_shift"] > 0
     assert meta["config"]["loss"]["self_supervision"] > 0  # the self-supervision term, since stage 2
-    # the demo model fine-tuned on the `real` scenes, then self-supervised, then taught vertical motion
-    stage1, stage2, stage3 = meta["earlier_stages"]
+    # the demo model fine-tuned on the `real` scenes, then self-supervised, then taught vertical motion, then census
+    stage1, stage2, stage3, stage4 = meta["earlier_stages"]
     assert stage1["config"] == "demo:long,real" and stage1["init_from"] == "demo" and stage1["steps"] > 0
     assert stage2["config"] == "demo:long,real,selfsup" and stage2["init_from"] == "work/long" and stage2["steps"] > 0
     assert stage3["config"] == "demo:long,real,selfsup,motion" and stage3["init_from"] == "work/long2"
     assert stage3["steps"] > 0
+    assert stage4["config"] == "demo:long,real,selfsup,motion,census" and stage4["init_from"] == "work/long3"
+    assert stage4["steps"] > 0
     assert meta["training"]["seconds"] > 0 and "core" in meta["training"]["machine"]
     assert set(meta["real_images"]) == {"motorcycle", "homography", "heldout_synthetic"}
     for by_size in meta["real_images"].values():
         assert {"trained", "native", "opencv"} <= set(by_size)
     assert main(["show", "long"]) == 0
     out = capsys.readouterr().out
-    assert f"long: pwc_lite trained at 128x256, {meta['steps']} steps" in out
+    assert f"long: pwc_lite trained at 256x512, {meta['steps']} steps" in out
     assert "scenes real_motion" in out and meta["training"]["machine"] in out
     assert f"stage 1: --config=demo:long,real, {stage1['steps']} steps from demo" in out
     d1 = meta["real_images"]["motorcycle"]["native"]["d1_all"]

@@ -27,13 +27,15 @@ stage 1's workdir `work/long`);
 `data.augment_shift=0.08`, lr 2.5e-4 halved at 1,000, initialised from stage 2's workdir `work/long2`);
 `long,real,selfsup,motion,census` = its stage 4 (1,000 steps with the census photometric term,
 `loss.photometric=census`, at a constant lr 1.25e-4, initialised from stage 3's workdir `work/long3`);
+`long,real,selfsup,motion,census,hires` = its stage 5, the shipped `long` (250 steps of stage 4's recipe at
+256x512, initialised from stage 4's workdir `work/long4`);
 `long` = a longer recipe (128x256, 6,000 steps: under 2 h
 on 2 CPU cores; resumable, so it can be stopped and continued).
 """
 
 from bridge_jax.configs import default
 
-ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup", "motion", "census")
+ARGS = ("short", "resnet_md_tiny", "paper_loss", "long", "real", "selfsup", "motion", "census", "hires")
 
 
 def get_config(arg=None):
@@ -105,6 +107,12 @@ def get_config(arg=None):
                         c.lr = 1.25e-4
                         c.loss.photometric = "census"
                         c.loop.update(num_train_steps=1000, steps_per_epoch=1000)  # constant lr
+                        if "hires" in opts:  # stage 5: the same at 256x512, so that one working pixel is 1-2
+                            # input pixels of a photograph (fine detail, object edges, sub-pixel shifts the
+                            # 128x256 stages never saw), on top of the finished stage 4 (its workdir `work/long4`)
+                            c.init_from = "work/long4"
+                            c.height, c.width = 256, 512
+                            c.loop.update(num_train_steps=250, checkpoint_every=125)
     if "short" in opts:  # a 1-minute smoke run of the same pipeline
         c.loop.update(num_train_steps=30, checkpoint_every=15, eval_every=15, image_every=15)
         c.eval.num_samples = 4

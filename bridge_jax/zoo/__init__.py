@@ -61,11 +61,11 @@ class Entry:
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` (the `demo` config: 64x128, "
                   "2,500 steps on the built-in synthetic stereo video); a starting point, not a KITTI model"),
-    "long": Entry("long", "shipped", "pwc_lite fine-tuned from `demo` at 128x256 on the synthetic scenes that carry "
-                  "over to real images (photo textures, slanted and rotating objects, varied rigs, per-camera "
-                  "photometric differences, vertical motion), with self-supervision and the census loss (config "
-                  "`demo:long,real,selfsup,motion,census`, four stages: `bridge-zoo show long`); for your own "
-                  "images; by default at --working-size native with one --refine pass"),
+    "long": Entry("long", "shipped", "pwc_lite fine-tuned from `demo` at 128x256, then 256x512, on the synthetic "
+                  "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
+                  "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
+                  "(config `demo:long,real,selfsup,motion,census,hires`, five stages: `bridge-zoo show long`); for "
+                  "your own images; by default at --working-size native with one --refine pass"),
     **{f"upstream_ver_{v}": Entry(
         f"upstream_ver_{v}", "local",
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
