@@ -1,6 +1,6 @@
 """Real-image checks: the models against OpenCV on real photographs with exact ground truth.
 
-Three checks, each run for every model (`--models`, shipped names or checkpoint paths) at every working size
+Five checks, each run for every model (`--models`, shipped names or checkpoint paths) at every working size
 (`--sizes`: `trained` = the size the model was trained at, `native` = each input at its own resolution, or HxW),
 next to OpenCV on the same inputs at full resolution:
 
@@ -17,6 +17,9 @@ next to OpenCV on the same inputs at full resolution:
 4. **Pure shifts** (`shift_set`): each held-out photo moved by 4 and 8 px, horizontally and vertically, with a
    camera-response change: EPE and the gain along the motion, per direction. It shows a direction the training
    scenes never moved in (the vertical, before `real_motion`).
+5. **Pure zooms** (`zoom_set`): each held-out photo zoomed by +4 % and -4 % about its centre, with a
+   camera-response change: EPE and the gain (least-squares scale of the predicted flow), per direction. It shows
+   whether a model reads expansion and contraction at their size (`long` before stage 6 read them 3-5 % short).
 
     python experiments/real_images.py --models demo,long --sizes trained,native \\
         --out experiments/results/real_images.md --pictures experiments/results/real_images
@@ -209,6 +212,43 @@ def shift_set(seed: int = HOMOGRAPHY_SEED + 1) -> list[dict]:
     return out
 
 
+ZOOMS = (1.04, 0.96)
+"""The zooms of `zoom_set`: the scene expands by 4 % (the camera moves towards it), then contracts by 4 %."""
+
+
+def zoom_set(seed: int = HOMOGRAPHY_SEED + 2) -> list[dict]:
+    """Each held-out photo zoomed by each of `ZOOMS` about its centre (no patches, a camera-response change
+    between the frames): flow s (p - c) - (p - c), from 0 at the centre to about 8 px at the corners. A model
+    whose training scenes expand only one way (a rig driving forward), or only far from the horizon, reads the
+    zoom short (`zoom_metrics`)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for name in photos.HELDOUT_PHOTOS:
+        image = photos.load_photo(name)
+        h = image.shape[0] - 2 * int(round(0.1 * image.shape[0]))
+        w = image.shape[1] - 2 * int(round(0.1 * image.shape[1]))
+        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        for s in ZOOMS:
+            g = np.array([[s, 0.0, (1 - s) * cx], [0.0, s, (1 - s) * cy], [0.0, 0.0, 1.0]])
+            pair = homography_pair(image, image, rng, homography=g, patches=[])
+            pair.update(id=f"{name}-x{s:.2f}", zoom=s)
+            out.append(pair)
+    return out
+
+
+def zoom_metrics(flows: list[np.ndarray], pairs: list[dict]) -> dict:
+    """EPE (noc pixels) of the expanding and of the contracting zooms of `zoom_set`, and the gain: the
+    least-squares scale of the predicted flow against the true one over the noc pixels (sum f.g / sum g.g;
+    1 = exact, < 1 = the zoom read short)."""
+    out: dict[str, list] = {"epe_expand": [], "epe_contract": [], "gain_expand": [], "gain_contract": []}
+    for f, pair in zip(flows, pairs):
+        kind = "expand" if pair["zoom"] > 1 else "contract"
+        m, g = pair["noc"], pair["flow"].astype(np.float64)
+        out[f"epe_{kind}"].append(float(np.linalg.norm(f - g, axis=-1)[m].mean()))
+        out[f"gain_{kind}"].append(float((f[m] * g[m]).sum() / (g[m] ** 2).sum()))
+    return {k: float(np.mean(v)) for k, v in out.items()}
+
+
 def shift_metrics(flows: list[np.ndarray], pairs: list[dict]) -> dict:
     """EPE (noc pixels) of the horizontal and of the vertical shifts of `shift_set`, and the gain along the
     motion: median predicted component / true component, over the noc pixels (1 = exact, < 1 = short)."""
@@ -241,11 +281,13 @@ def _mean(rows: list[dict]) -> dict:
 
 def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pictures: str | None = None) -> dict:
     """methods: name -> predictor (or "opencv"/"zero"). Returns {check: {method: metrics}}."""
-    results: dict[str, dict] = {"motorcycle": {}, "homography": {}, "heldout_synthetic": {}, "shifts": {}}
+    results: dict[str, dict] = {"motorcycle": {}, "homography": {}, "heldout_synthetic": {}, "shifts": {},
+                                "zooms": {}}
     timing: dict[str, float] = {}
     moto = motorcycle()
     hom = homography_set(per_photo)
     shifts = shift_set()
+    zooms = zoom_set()
     syn = synthetic_frames(synthetic_num, HELDOUT_SYNTHETIC_SEED, 256, 512, scene="heldout")
     panels: dict[str, list] = {"motorcycle": [], "homography": [], "heldout_synthetic": []}
     for name, method in methods.items():
@@ -292,14 +334,9 @@ def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pi
             if k == 0:
                 panels["heldout_synthetic"].append((name, visualize.flow_to_color(f, max_flow=30.0)))
         results["heldout_synthetic"][name] = _mean(rows)
-        # 4. Pure shifts, horizontal and vertical
-        if method == "zero":
-            flows = [np.zeros_like(p["flow"]) for p in shifts]
-        elif method == "opencv":
-            flows = [baselines.dis_flow(p["frame_t"], p["frame_t1"]) for p in shifts]
-        else:
-            flows = method.predict([("flow", p["frame_t"], p["frame_t1"]) for p in shifts], batch=1)
-        results["shifts"][name] = shift_metrics(flows, shifts)
+        # 4. Pure shifts, horizontal and vertical; 5. pure zooms, expanding and contracting
+        results["shifts"][name] = shift_metrics(_flows(method, shifts), shifts)
+        results["zooms"][name] = zoom_metrics(_flows(method, zooms), zooms)
         timing[name] = time.perf_counter() - t0
         print(f"{name}: {timing[name]:.1f} s", file=sys.stderr, flush=True)
     if pictures:
@@ -317,6 +354,15 @@ def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pi
             visualize.write_image(os.path.join(pictures, f"{check}.jpg"), picture)  # half size: small files
     results["seconds"] = timing
     return results
+
+
+def _flows(method, pairs: list[dict]) -> list[np.ndarray]:
+    """The flow of each of `pairs` (frame_t -> frame_t1) by `method`: a predictor, "zero" or "opencv" (DIS)."""
+    if method == "zero":
+        return [np.zeros_like(p["flow"]) for p in pairs]
+    if method == "opencv":
+        return [baselines.dis_flow(p["frame_t"], p["frame_t1"]) for p in pairs]
+    return method.predict([("flow", p["frame_t"], p["frame_t1"]) for p in pairs], batch=1)
 
 
 def _pick(d: dict, keys) -> dict:
@@ -346,12 +392,17 @@ def markdown(results: dict, header: str) -> str:
             "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
                                   ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")],
             "shifts": [("epe_horizontal", "EPE horizontal px"), ("epe_vertical", "EPE vertical px"),
-                       ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")]}
+                       ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")],
+            "zooms": [("epe_expand", "EPE expanding px"), ("epe_contract", "EPE contracting px"),
+                      ("gain_expand", "gain expanding"), ("gain_contract", "gain contracting")]}
     titles = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
               "homography": "Held-out photos under homographies + moving patches (flow)",
               "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)",
-              "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)"}
+              "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)",
+              "zooms": "Held-out photos zoomed by +4 % and -4 % about their centre (flow; gain 1 = exact)"}
     for check, cs in cols.items():
+        if check not in results:  # results of an earlier version of the script
+            continue
         lines += [f"### {titles[check]}", "", "| method | " + " | ".join(c[1] for c in cs) + " |",
                   "|---" * (len(cs) + 1) + "|"]
         for name, m in results[check].items():

@@ -341,6 +341,78 @@ def test_shift_crop_moves_the_flow_and_keeps_the_disparity():
         pipeline.DataConfig(augment_shift=0.5)
 
 
+def test_t1_zoom_crop_hand_case_windows_and_scale():
+    """Frames that hold their own pixel coordinates (a second camera offset by 50): the t frames are the drawn
+    integer window; pixel (x, y) of each t+1 frame shows (x1 + (x + 0.5) / z - 0.5, y1 + (y + 0.5) / z - 0.5),
+    the same point for both cameras; z stays within 1 +- amount."""
+    h, w = 100, 200
+    ys, xs = np.mgrid[0:h, 0:w]
+    frame = np.stack([ys, xs, np.zeros_like(ys)], -1).astype(np.uint8)
+    right = frame + np.array([0, 50, 0], np.uint8)  # xs + 50 <= 249: no wrap
+    cycle = np.stack([frame, right, frame, right])
+    assert pipeline.t1_zoom_crop(cycle, np.random.default_rng(0), 0.0) is cycle
+    zooms = []
+    for seed in range(12):
+        z, ch, cw, y0, x0, y1, x1 = pipeline.draw_t1_zoom(np.random.default_rng(seed), h, w, 0.1)
+        zooms.append(z)
+        assert 0.9 <= z <= 1.1 and (ch, cw) == (90, 180)
+        assert 0 <= y1 and y1 + ch / z <= h + 1e-9 and 0 <= x1 and x1 + cw / z <= w + 1e-9
+        out = pipeline.t1_zoom_crop(cycle, np.random.default_rng(seed), 0.1)
+        assert out.shape == (4, 90, 180, 3)
+        np.testing.assert_array_equal(out[0], frame[y0:y0 + 90, x0:x0 + 180])
+        np.testing.assert_array_equal(out[1], right[y0:y0 + 90, x0:x0 + 180])
+        qy, qx = np.mgrid[0:90, 0:180]
+        src_x, src_y = x1 + (qx + 0.5) / z - 0.5, y1 + (qy + 0.5) / z - 0.5
+        inside = (src_x <= w - 1) & (src_y <= h - 1)  # the last source pixel's far half is clamped
+        # uint8 rounding of a bilinearly sampled ramp: within half a level
+        assert np.abs(out[2, ..., 1] - src_x)[inside].max() <= 0.51
+        assert np.abs(out[2, ..., 0] - src_y)[inside].max() <= 0.51
+        np.testing.assert_array_equal(out[3, ..., 1].astype(int) - 50, out[2, ..., 1])  # one window per time
+        np.testing.assert_array_equal(out[3, ..., 0], out[2, ..., 0])
+    assert min(zooms) < 0.97 and max(zooms) > 1.03  # both directions: expansion and contraction
+
+
+def test_t1_zoom_crop_moves_the_flow_and_keeps_the_pairs_rectified():
+    """On a rendered cycle with exact ground truth: after the zoom crop, left_t1 sampled where the old flow
+    lands, mapped into the zoomed t+1 window (q = z (p + flow - (x1, y1) + 0.5) - 0.5), reconstructs left_t,
+    and the old flow without the zoom does not; right_t1 still matches left_t1 along rows, at z x the disparity
+    of the same point."""
+    h, w = 96, 192
+    s = synthetic.render_sample(21, h, w)
+    checked = 0
+    for seed in range(8):
+        z, ch, cw, y0, x0, y1, x1 = pipeline.draw_t1_zoom(np.random.default_rng(seed), h, w, 0.1)
+        if abs(z - 1.0) < 0.04:
+            continue
+        checked += 1
+        c = pipeline.t1_zoom_crop(s["cycle"], np.random.default_rng(seed), 0.1)
+        win = (slice(y0, y0 + ch), slice(x0, x0 + cw))
+        gx, gy = np.meshgrid(np.arange(cw, dtype=np.float64), np.arange(ch, dtype=np.float64))
+        fl, noc = s["flow"][win], s["noc_flow"][win]
+        qx = z * (gx + x0 + fl[..., 0] - x1 + 0.5) - 0.5
+        qy = z * (gy + y0 + fl[..., 1] - y1 + 0.5) - 0.5
+        noc = noc & (qx >= 0) & (qx <= cw - 1) & (qy >= 0) & (qy <= ch - 1)
+        err = lambda a, b, m: np.abs(a.astype(np.float64) / 255 - b / 255).mean(-1)[m]  # noqa: E731
+        good = err(c[0], bilinear(c[2], qx, qy), noc)
+        stale = err(c[0], bilinear(c[2], gx + fl[..., 0], gy + fl[..., 1]), noc)
+        assert np.median(good) < 0.01 and np.median(stale) > 2 * np.median(good), (np.median(good), np.median(stale))
+        d, dnoc = s["disp_t"][win], s["noc_disp_t"][win] & (gx - s["disp_t"][win] >= 0)
+        assert err(c[0], bilinear(c[1], gx - d, gy), dnoc).mean() < 0.006  # the t pair: an integer crop
+        # the t+1 pair: pixel q of the zoomed left_t1 shows the rendered point sx, sy; its match in the zoomed
+        # right_t1 lies on the same row, z x that point's rendered disparity to the left
+        sx, sy = x1 + (gx + 0.5) / z - 0.5, y1 + (gy + 0.5) / z - 0.5
+        d1 = bilinear(s["disp_t1"][..., None].astype(np.float64), sx, sy)[..., 0]
+        n1 = bilinear(s["noc_disp_t1"][..., None].astype(np.float64), sx, sy)[..., 0] > 0.999
+        n1 = n1 & (gx - z * d1 >= 0)
+        scaled = err(c[2], bilinear(c[3], gx - z * d1, gy), n1)
+        unscaled = err(c[2], bilinear(c[3], gx - d1, gy), n1)
+        assert np.median(scaled) < 0.01 and scaled.mean() < unscaled.mean(), (scaled.mean(), unscaled.mean())
+    assert checked >= 2
+    assert pipeline.DataConfig(augment_t1_zoom=0.1).augment_t1_zoom == 0.1
+    with pytest.raises(ValueError, match="data.augment_t1_zoom"):
+        pipeline.DataConfig(augment_t1_zoom=0.3)
+
+
 def test_augment_shift_leaves_the_other_draws_alone():
     """Turning the shift on changes only the crop: the photometric and zoom draws come first, so the centre of
     an unshifted window (dy = dx = 0 draws aside) carries the same colours."""

@@ -109,3 +109,23 @@ def test_shift_set_and_its_metrics_hand_case():
     m = real_images.shift_metrics(flows, pairs)
     assert m["gain_horizontal"] == pytest.approx(1.0) and m["gain_vertical"] == pytest.approx(0.5)
     assert m["epe_horizontal"] == pytest.approx(0.0, abs=1e-6) and m["epe_vertical"] == pytest.approx(3.0)
+
+
+def test_zoom_set_and_its_metrics_hand_case():
+    """`zoom_set`: every pair's flow is (s - 1) (p - c) about the frame's centre c; `zoom_metrics`: a prediction
+    that reads the expansion at 90 % and the contraction exactly scores gain 0.9 / 1, EPE 10 % of the mean flow
+    length / 0."""
+    pairs = real_images.zoom_set()
+    assert len(pairs) == len(real_images.ZOOMS) * len(real_images.photos.HELDOUT_PHOTOS)
+    for p in pairs:
+        h, w = p["flow"].shape[:2]
+        ys, xs = np.mgrid[0:h, 0:w]
+        s = p["zoom"]
+        np.testing.assert_allclose(p["flow"][..., 0], (s - 1) * (xs - (w - 1) / 2), atol=1e-4)
+        np.testing.assert_allclose(p["flow"][..., 1], (s - 1) * (ys - (h - 1) / 2), atol=1e-4)
+    flows = [p["flow"] * (0.9 if p["zoom"] > 1 else 1.0) for p in pairs]
+    m = real_images.zoom_metrics(flows, pairs)
+    assert m["gain_expand"] == pytest.approx(0.9) and m["gain_contract"] == pytest.approx(1.0)
+    expand = [p for p in pairs if p["zoom"] > 1]
+    mean_len = np.mean([np.linalg.norm(p["flow"], axis=-1)[p["noc"]].mean() for p in expand])
+    assert m["epe_expand"] == pytest.approx(0.1 * mean_len, rel=1e-5) and m["epe_contract"] == pytest.approx(0.0)

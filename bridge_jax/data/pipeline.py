@@ -21,8 +21,9 @@ Augmentation (the paper's, each op independently with p = 0.5, one draw shared b
   * brightness ×U(0.5, 2.0); per-channel colour ×U(0.8, 1.2); clip to [0, 1] after each op.
   The photometric ops are per-pixel 256-entry lookup tables on the uint8 input, applied at full resolution
   and rounded to uint8 (upstream re-quantised to uint8 after every op; we round once).
-  Beyond the paper, both off by default: a zoom crop (`augment_zoom`, one window for all frames) and a shifted
-  crop (`augment_shift`, the t+1 window offset from the t one), drawn after the paper's ops.
+  Beyond the paper, all off by default: a zoom crop (`augment_zoom`, one window for all frames), a shifted
+  crop (`augment_shift`, the t+1 window offset from the t one) and a zoom between t and t+1
+  (`augment_t1_zoom`, the t+1 window scaled against the t one), drawn after the paper's ops.
 Resize (after augmentation, on uint8 as upstream's PIL resize): cv2 INTER_AREA when shrinking (anti-aliased,
 close to PIL's bilinear), INTER_LINEAR when enlarging; then /255 → float32.
 
@@ -240,6 +241,11 @@ class DataConfig:
       pair keeps one window, so it stays rectified, and the flow gains the windows' offset. It gives a model
       vertical motion, which driving-like video (and the synthetic scenes before `real_motion`) hardly has.
       0.0 = off (the paper).
+    augment_t1_zoom: geometric augmentation beyond the paper: with `augment`, frames t+1 are seen through a
+      window z x smaller than frame t's, z ~ U(1 - a, 1 + a) (`t1_zoom_crop`): the flow gains an expansion or a
+      contraction (as when the camera or the scene moves along the optical axis), which the synthetic scenes
+      hardly show and real video often does. Each stereo pair keeps one window (rows stay rectified). 0.0 = off
+      (the paper); at most 0.2.
     num_workers: grain worker processes (0 = decode in the training process).
     prefetch, read_threads, worker_buffer_size: grain read options.
     max_skip: consecutive unreadable cycles tolerated before the data folder is reported as broken.
@@ -263,6 +269,7 @@ class DataConfig:
     augment: bool = True  # the paper's augmentation (flip, gamma, brightness, colour)
     augment_zoom: float = 1.0  # with augment, a random zoom crop of s in [augment_zoom, 1] (1 = off)
     augment_shift: float = 0.0  # with augment, frames t+1 cut up to this fraction of the height away from t (0 = off)
+    augment_t1_zoom: float = 0.0  # with augment, frames t+1 zoomed by z in [1 - a, 1 + a] against t (0 = off)
     num_workers: int = 0  # grain worker processes (0 = decode in the training process)
     prefetch: int = 2  # grain read-ahead buffer (elements)
     read_threads: int = 1  # grain read threads
@@ -284,6 +291,9 @@ class DataConfig:
         if not 0.0 <= float(self.augment_shift) <= 0.25:
             raise ValueError(f"data.augment_shift must be in [0, 0.25] (a fraction of the height; 0 = off), got "
                              f"{self.augment_shift!r}")
+        if not 0.0 <= float(self.augment_t1_zoom) <= 0.2:
+            raise ValueError(f"data.augment_t1_zoom must be in [0, 0.2] (the largest relative zoom between t and "
+                             f"t+1; 0 = off), got {self.augment_t1_zoom!r}")
         if self.synthetic_scene not in synthetic.SCENE_PRESETS:
             raise ValueError(f"data.synthetic_scene must be one of {tuple(synthetic.SCENE_PRESETS)}, got "
                              f"{self.synthetic_scene!r}")
@@ -480,9 +490,44 @@ def shift_crop(cycle: np.ndarray, rng: np.random.Generator, max_shift: float) ->
     return np.concatenate([t, t1])
 
 
+def draw_t1_zoom(rng: np.random.Generator, height: int, width: int,
+                 amount: float) -> tuple[float, int, int, int, int, float, float]:
+    """One draw of `t1_zoom_crop`'s windows for a cycle of `height x width`: (z, ch, cw, y0, x0, y1, x1) =
+    the zoom z ~ U(1 - amount, 1 + amount), the t window's size ch x cw = round((1 - amount) x the frame) and
+    top-left corner (y0, x0), and the top-left corner (y1, x1) (float) of the t+1 window, of size
+    (ch / z) x (cw / z); both windows lie inside the frame, each at a uniform position."""
+    z = float(rng.uniform(1.0 - amount, 1.0 + amount))
+    ch, cw = int(round((1.0 - amount) * height)), int(round((1.0 - amount) * width))
+    y0, x0 = int(rng.integers(0, height - ch + 1)), int(rng.integers(0, width - cw + 1))
+    y1 = float(rng.uniform(0.0, max(0.0, height - ch / z)))
+    x1 = float(rng.uniform(0.0, max(0.0, width - cw / z)))
+    return z, ch, cw, y0, x0, y1, x1
+
+
+def t1_zoom_crop(cycle: np.ndarray, rng: np.random.Generator, amount: float) -> np.ndarray:
+    """Frames t cut from a window of (1 - amount) x the frame, frames t+1 from a window z times smaller
+    (`draw_t1_zoom`) resampled to the same size: pixel (x, y) of frame t+1 shows the point (x1 + (x + 0.5) / z
+    - 0.5, y1 + (y + 0.5) / z - 0.5) of the rendered t+1 frame, so a point at pixel p of the new frame t with
+    rendered flow f lands at q = z (p + (x0, y0) + f - (x1, y1) + 0.5) - 0.5 of the new frame t+1: the flow
+    gains a zoom about a random centre (z > 1: the scene expands, as when the camera moves towards it).
+    Each stereo pair keeps one window (the same resampling for left and right), so rows stay rectified and
+    disparities at t+1 scale by z. `(4, H, W, C)` uint8 in, `(4, round((1 - amount) H), round((1 - amount) W),
+    C)` out (the same cycle when amount is 0)."""
+    if amount <= 0.0:
+        return cycle
+    _, h, w, _ = cycle.shape
+    z, ch, cw, y0, x0, y1, x1 = draw_t1_zoom(rng, h, w, amount)
+    # Output pixel (x, y) <- source (x1 + (x + 0.5) / z - 0.5, ...): pixel centres, not corners, scale by 1/z.
+    m = np.array([[1.0 / z, 0.0, x1 + 0.5 / z - 0.5], [0.0, 1.0 / z, y1 + 0.5 / z - 0.5]], np.float64)
+    t1 = [cv2.warpAffine(frame, m, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE) for frame in cycle[2:]]
+    t1 = [f[..., None] if f.ndim == 2 else f for f in t1]  # cv2 drops a single channel
+    return np.concatenate([cycle[:2, y0:y0 + ch, x0:x0 + cw], np.stack(t1)])
+
+
 class _Augment(grain.transforms.RandomMap):
-    def __init__(self, enabled: bool, zoom: float = 1.0, shift: float = 0.0):
-        self.enabled, self.zoom, self.shift = enabled, float(zoom), float(shift)
+    def __init__(self, enabled: bool, zoom: float = 1.0, shift: float = 0.0, t1_zoom: float = 0.0):
+        self.enabled, self.zoom, self.shift, self.t1_zoom = enabled, float(zoom), float(shift), float(t1_zoom)
 
     def random_map(self, element: dict, rng: np.random.Generator) -> dict:
         if not self.enabled:
@@ -491,6 +536,8 @@ class _Augment(grain.transforms.RandomMap):
         cycle = zoom_crop(cycle, rng, self.zoom)
         if self.shift > 0:  # drawn last, so the draws above stay what they were without it
             cycle = shift_crop(cycle, rng, self.shift)
+        if self.t1_zoom > 0:  # drawn after the shift, so runs without it keep their draws
+            cycle = t1_zoom_crop(cycle, rng, self.t1_zoom)
         return {**element, "cycle": cycle}
 
 
@@ -551,7 +598,8 @@ def make_train_dataset(data: DataConfig, *, global_batch: int, seed: int, height
     ds = ds[process_index::process_count]
     ds = ds.repeat(None if data.num_epochs is None else int(data.num_epochs))
     ds = ds.map(LoadCycle(src, int(data.max_skip), skips))
-    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom), float(data.augment_shift)),
+    ds = ds.random_map(_Augment(bool(data.augment), float(data.augment_zoom), float(data.augment_shift),
+                                float(data.augment_t1_zoom)),
                        seed=(seed * 1_000_003 + 7919 * (process_index + 1)) % 2**32)
     ds = ds.map(_Resize(height, width))
     ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=int(data.read_threads) or 1,
