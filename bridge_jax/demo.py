@@ -1,14 +1,17 @@
 r"""README main job: train the `demo` config on the built-in synthetic stereo video, then evaluate it.
 
-    bridge-demo --workdir=work/demo        # what `make demo` runs (7-15 min on 2 CPU cores)
+    bridge-demo --workdir=work/demo        # what `make demo` runs (9-18 min on 2 CPU cores)
 
 Steps:
-  1. train bridge_jax/configs/demo.py into WORKDIR/train (resumes if interrupted: run the command again),
-  2. write a held-out synthetic validation set in the KITTI 2015 layout to WORKDIR/val_data (the data module's
+  1. train bridge_jax/configs/demo.py (64x128) into WORKDIR/train_64x128 (resumes if interrupted: run the command
+     again),
+  2. its second phase, `demo:finish` (the same at 128x256, from the first phase's weights), into WORKDIR/train:
+     the demo model,
+  3. write a held-out synthetic validation set in the KITTI 2015 layout to WORKDIR/val_data (the data module's
      writer; the same samples the trainer validates on),
-  3. evaluate the trained model and the zero-motion / OpenCV baselines on it (bridge_jax.evaluate) into
+  4. evaluate the trained model and the zero-motion / OpenCV baselines on it (bridge_jax.evaluate) into
      WORKDIR/eval (results.md, results.json, pictures/),
-  4. print where the metrics, TensorBoard logs and pictures are, and whether the model learned (validation
+  5. print where the metrics, TensorBoard logs and pictures are, and whether the model learned (validation
      flow EPE vs the zero-motion baseline).
 """
 
@@ -23,46 +26,60 @@ from bridge_jax import cli, compile_cache, console, evaluate, inference, setup, 
 from bridge_jax.configs import demo as demo_config
 from bridge_jax.data import synthetic
 
+FIRST_PHASE_DIR = "train_64x128"
+"""Where in WORKDIR the first phase trains (the second, whose model is the demo's, trains in WORKDIR/train)."""
+
 
 def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None = None,
         enable_cache: bool = False) -> dict:
-    """Train + validation set + evaluation; returns a summary dict (paths and headline numbers).
+    """Both training phases + validation set + evaluation; returns a summary dict (paths and headline numbers).
 
-    `overrides`: {"dotted.key": value} applied to the demo config. `enable_cache`: turn on the persistent
-    compilation cache of `config.compilation_cache_dir` (`compile_cache.enable`; what the command line does; JAX
-    keeps the first cache folder of a process, so library callers leave it off)."""
+    `config_arg`: the demo config's argument ("short" for the smoke run); the second phase runs the same with
+    "finish" added. `overrides`: {"dotted.key": value} applied to the config of both phases. `enable_cache`: turn
+    on the persistent compilation cache of `config.compilation_cache_dir` (`compile_cache.enable`; what the command
+    line does; JAX keeps the first cache folder of a process, so library callers leave it off)."""
     workdir = os.path.abspath(workdir)
-    config = demo_config.get_config(config_arg)
-    config.update_from_flattened_dict(dict(overrides or {}))
-    demo_run = setup.parse(config)
+    first_dir = os.path.join(workdir, FIRST_PHASE_DIR)
     train_dir = os.path.join(workdir, "train")
+    first_run = _parse(config_arg, overrides)
+    second_run = _parse(",".join([a for a in (config_arg or "").split(",") if a] + ["finish"]), overrides,
+                        init_from=first_dir)
+    _check_model_dir(train_dir, second_run)
     if enable_cache:  # the demo's config is fixed and checked above: one cache serves training and evaluation
-        compile_cache.enable(demo_run.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
+        compile_cache.enable(first_run.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
 
     t0 = time.time()
-    print(f"[1/3] Training the demo model ({demo_run.loop.num_train_steps} steps, {demo_run.height}x{demo_run.width}, "
-          f"{demo_run.model.config['name']}) in {train_dir}", flush=True)
-    result = train.train_and_evaluate(demo_run, train_dir, config_name="demo")
+    print(f"[1/4] Training the demo model, first phase ({first_run.loop.num_train_steps} steps, "
+          f"{first_run.height}x{first_run.width}, {first_run.model.config['name']}) in {first_dir}", flush=True)
+    first = train.train_and_evaluate(first_run, first_dir, config_name="demo")
+    if first["interrupted"]:
+        print(f"Training interrupted at step {first['step']}; run the same command again to resume.")
+        return {"interrupted": True, "train_dir": first_dir}
+    print(f"[2/4] Second phase ({second_run.loop.num_train_steps} steps at {second_run.height}x{second_run.width}, "
+          f"from the first phase's weights) in {train_dir}", flush=True)
+    result = train.train_and_evaluate(second_run, train_dir, config_name="demo:finish")
     train_s = time.time() - t0
     if result["interrupted"]:
-        print(f"Training interrupted at step {result['step']}; run the same command again to resume.")
+        print(f"Training interrupted at step {result['step']} of the second phase; run the same command again to "
+              "resume.")
         return {"interrupted": True, "train_dir": train_dir}
 
-    print(f"[2/3] Writing {demo_run.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
+    print(f"[3/4] Writing {second_run.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
     if not os.path.isdir(val_dir):
-        synthetic.write_kitti_layout(val_dir, demo_run.eval.num_samples, seed=demo_run.eval.seed, height=demo_run.height,
-                                     width=demo_run.width)
+        synthetic.write_kitti_layout(val_dir, second_run.eval.num_samples, seed=second_run.eval.seed,
+                                     height=second_run.height, width=second_run.width)
 
-    print(f"[3/3] Evaluating the trained model and the baselines on it into {eval_dir}", flush=True)
-    predictor = inference.load_predictor(train_dir, height=demo_run.height, width=demo_run.width)
+    print(f"[4/4] Evaluating the trained model and the baselines on it into {eval_dir}", flush=True)
+    predictor = inference.load_predictor(train_dir, height=second_run.height, width=second_run.width)
     results = evaluate.evaluate(predictor, "synthetic", val_dir, out_dir=eval_dir, overwrite=True,
-                                batch=demo_run.eval.batch, progress=False)
+                                batch=second_run.eval.batch, progress=False)
     val = result.get("validation", {})
     summary = {
-        "interrupted": False, "train_dir": train_dir, "eval_dir": eval_dir, "val_data": val_dir,
-        "train_seconds": round(train_s, 1), "steps": result["step"],
+        "interrupted": False, "train_dir": train_dir, "first_phase_dir": first_dir, "eval_dir": eval_dir,
+        "val_data": val_dir, "train_seconds": round(train_s, 1), "steps": first["step"] + result["step"],
+        "phase_steps": [first["step"], result["step"]],
         "val_flow_epe": val.get("flow_epe_all"), "zero_flow_epe": val.get("zero_flow_epe_all"),
         "val_flow_epe_vs_zero": val.get("flow_epe_vs_zero"), "val_flow_noc_vs_zero": val.get("flow_noc_vs_zero"),
         "val_disp_epe": val.get("disp_epe_all"),
@@ -86,6 +103,34 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
               f"{summary['val_disp_epe']:.3f} px vs zero {summary['zero_disp_epe']:.3f} px. Training took "
               f"{train_s / 60:.1f} min.")
     return summary
+
+
+def _check_model_dir(train_dir: str, second_run: setup.Run) -> None:
+    """Refuses (ValueError, before anything is trained) a WORKDIR/train that holds a run at another size than the
+    second phase's: a workdir of the one-phase demo (64x128, before 2026-12-03) would otherwise be taken for a
+    finished second phase."""
+    path = os.path.join(train_dir, "config.json")
+    if not os.path.isfile(path):
+        return
+    try:
+        with open(path) as f:
+            old = json.load(f)
+        size = (int(old["height"]), int(old["width"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # not a config this check can read: the trainer's own checks decide
+    if size != (second_run.height, second_run.width):
+        raise ValueError(f"{train_dir} holds a run at {size[0]}x{size[1]}, but the demo model is now its second "
+                         f"phase at {second_run.height}x{second_run.width} (the demo trains in two phases since "
+                         f"2026-12-03: first {FIRST_PHASE_DIR}, then train); use a new --workdir or move that "
+                         "folder away")
+
+
+def _parse(config_arg: str | None, overrides: dict | None, init_from: str | None = None) -> setup.Run:
+    config = demo_config.get_config(config_arg)
+    config.update_from_flattened_dict(dict(overrides or {}))
+    if init_from is not None:
+        config.init_from = init_from
+    return setup.parse(config)
 
 
 def build_parser():

@@ -20,7 +20,18 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((wd / "demo_summary.json").read_text())
-    assert summary["steps"] == 30 and not summary["interrupted"]
+    # both phases ran: 30 steps at 64x128, then 10 at 128x256 from their weights, which are the demo model
+    assert summary["phase_steps"] == [30, 10] and summary["steps"] == 40 and not summary["interrupted"]
+    first = json.loads((wd / "train_64x128" / "config.json").read_text())
+    second = json.loads((wd / "train" / "config.json").read_text())
+    assert (first["height"], first["width"], second["height"], second["width"]) == (64, 128, 128, 256)
+    assert second["init_from"] == str(wd / "train_64x128") and first["init_from"] == ""
+    assert summary["train_dir"] == str(wd / "train")
+    # the second run of the process times its first step from its own start, not from the process's (which would
+    # include the whole first phase: its cold compile alone is longer than the second phase after its first step)
+    st1 = json.loads((wd / "train_64x128" / "status.json").read_text())
+    st2 = json.loads((wd / "train" / "status.json").read_text())
+    assert 0 < st2["first_step_s"] <= st2["ended"] - st2["started"] + 5.0, (st1, st2)
     # The validation numbers are real EPEs against a positive zero-motion baseline, not placeholders.
     assert summary["zero_flow_epe"] > 0.5 and summary["zero_disp_epe"] > 0.5
     assert 0.2 < summary["val_flow_epe_vs_zero"] < 5.0
@@ -31,3 +42,19 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
     assert cache.is_dir() and os.listdir(cache), "the demo should keep its compiled functions in the user's cache"
     assert not (wd / "xla_cache").exists()
     assert "Where things are" in r.stdout
+
+
+def test_demo_refuses_a_one_phase_workdir_before_training(tmp_path):
+    """A workdir of the one-phase demo (its model at 64x128 in WORKDIR/train) is refused with one error naming the
+    folder and both sizes, before anything is trained or written."""
+    from bridge_jax import demo
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / "config.json").write_text(json.dumps({"height": 64, "width": 128}))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    try:
+        demo.run(str(tmp_path), config_arg="short")
+    except ValueError as e:
+        assert str(tmp_path / "train") in str(e) and "64x128" in str(e) and "128x256" in str(e), e
+    else:
+        raise AssertionError("a 64x128 WORKDIR/train was taken for the second phase")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before

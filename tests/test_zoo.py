@@ -28,7 +28,9 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
 
 
 SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
-    "demo": (None, "retrain with `make demo` and run `bridge-zoo build demo --from work/demo/train`"),
+    "demo": ("finish", "retrain with `make demo`, set `init_from` in work/demo/train/config.json to the recipe's "
+                       "`work/demo/train_64x128`, and run `bridge-zoo build demo --from work/demo/train "
+                       "--earlier-stage demo=work/demo/train_64x128 --card work/demo_card.json`"),
     "long": ("long,real,selfsup,motion,census,hires",
              "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, stage 2 with "
              "`bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, stage 3 with `bridge-train "
@@ -99,22 +101,22 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
 
 
 def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
-    """`long`'s card recommends test-time refinement passes, which load_predictor then uses unless told
-    otherwise; a checkpoint path (no card) and the demo (no entry) run unrefined."""
-    meta = zoo.info("long")
-    assert zoo.default_refine("long") == meta["default_refine"] >= 1
-    assert inference.load_predictor("long").refine == meta["default_refine"]
+    """The shipped cards recommend test-time refinement passes, which load_predictor then uses unless told
+    otherwise; a checkpoint path (no card) runs unrefined."""
+    for name in ("long", "demo"):
+        meta = zoo.info(name)
+        assert zoo.default_refine(name) == meta["default_refine"] >= 1
+        assert inference.load_predictor(name).refine == meta["default_refine"]
     assert inference.load_predictor("long", refine=0).refine == 0
-    assert zoo.default_refine("demo") == 0 and inference.load_predictor("demo").refine == 0
     assert zoo.default_refine(str(tmp_path)) == 0 and zoo.default_refine("no-such-name") == 0
 
 
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
     """The shipped model, through the one predictor, on the trainer's held-out synthetic frames: flow and
     disparity well below zero motion, and the numbers recorded when it was built are reproduced."""
-    predictor = inference.load_predictor("demo")
-    assert (predictor.height, predictor.width) == (64, 128)
-    run = setup.parse(demo_config.get_config(), devices=jax.devices()[:1])
+    predictor = inference.load_predictor("demo", working_size="trained", refine=0)  # as the trainer validates
+    assert (predictor.height, predictor.width) == (128, 256)  # the second phase's size
+    run = setup.parse(demo_config.get_config("finish"), devices=jax.devices()[:1])
     res, _ = train.validate(predictor, predictor.params, train.validation_frames(run), 4, picture=False)
     assert res["flow_epe_all"] < 0.6 * res["zero_flow_epe_all"], res
     assert res["disp_epe_all"] < 0.3 * res["zero_disp_epe_all"], res

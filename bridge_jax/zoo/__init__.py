@@ -59,9 +59,11 @@ class Entry:
 
 
 _ENTRIES: dict[str, Entry] = {
-    "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` (the `demo` config: 64x128, "
-                  "2,500 steps on the built-in synthetic stereo video); a starting point, not a KITTI model"),
-    "long": Entry("long", "shipped", "pwc_lite fine-tuned from `demo` at 128x256, then 256x512, on the synthetic "
+    "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` on the built-in synthetic "
+                  "stereo video (the `demo` config: 1,750 steps at 64x128, then `demo:finish`: 300 steps at "
+                  "128x256); a starting point, not a KITTI model; by default at 128x256 with one --refine pass"),
+    "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
+                  "at 128x256, then 256x512, on the synthetic "
                   "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
                   "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
                   "(config `demo:long,real,selfsup,motion,census,hires`, five stages: `bridge-zoo show long`); for "
