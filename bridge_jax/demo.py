@@ -22,7 +22,7 @@ import os
 import sys
 import time
 
-from bridge_jax import cli, compile_cache, console, evaluate, inference, setup, train
+from bridge_jax import checkpointing, cli, compile_cache, console, evaluate, inference, setup, train
 from bridge_jax.configs import demo as demo_config
 from bridge_jax.data import synthetic
 
@@ -109,7 +109,7 @@ def _check_model_dir(train_dir: str, second_run: setup.Run) -> None:
     """Refuses (ValueError, before anything is trained) a WORKDIR/train that holds a run at another size than the
     second phase's: a workdir of the one-phase demo (64x128, before 2026-12-03) would otherwise be taken for a
     finished second phase."""
-    path = os.path.join(train_dir, "config.json")
+    path = os.path.join(train_dir, checkpointing.CONFIG_JSON)
     if not os.path.isfile(path):
         return
     try:

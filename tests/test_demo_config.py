@@ -26,7 +26,8 @@ def test_second_phase_is_the_first_at_twice_the_size_from_its_weights():
 def test_long_stages_apply_in_order_and_refuse_a_missing_one():
     """Each argument of `long` sets its stage on top of the ones before it; one given without the stages it builds
     on is refused (it used to be ignored)."""
-    s4, s5 = demo.get_config("long,real,selfsup,motion,census"), demo.get_config("long,real,selfsup,motion,census,hires")
+    s4 = demo.get_config("long,real,selfsup,motion,census")
+    s5 = demo.get_config("long,real,selfsup,motion,census,hires")
     assert (s4.init_from, s5.init_from) == ("work/long3", "work/long4")
     assert (s4.height, s5.height) == (128, 256) and (s4.lr, s5.lr) == (1.25e-4, 1.25e-4)
     assert s5.loss.photometric == "census" and s5.data.synthetic_scene == "real_motion"

@@ -3,8 +3,8 @@ cores).
 
 Same cycle of four pairs, one network shared by stereo and flow, the paper's occlusion, smoothness, left-right
 losses, in two phases: 1,750 steps at 64x128, then 300 at 128x256 from those weights (`demo:finish`); the model
-of the second phase is the demo model. Two things go beyond the paper, chosen by an ablation of the training switches (1,000-step
-runs of each):
+of the second phase is the demo model. Two things go beyond the paper, chosen by an ablation of the training
+switches (1,000-step runs of each):
 
 * the model is `pwc_lite` (a cost volume on normalised features, coarse to fine, one shared estimator), because
   the paper's encoder-decoder hardly learns flow on this data even when trained with ground truth;
