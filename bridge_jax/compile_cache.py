@@ -8,7 +8,8 @@ after `bridge-train` (or a resumed run, or the second `bridge-evaluate`) loads w
     BRIDGE_JAX_CACHE_DIR        if set: the folder ("" = no cache)
     $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla
 
-JAX's own JAX_COMPILATION_CACHE_DIR, if set, wins. The folder is trimmed to `MAX_CACHE_BYTES` at start-up
+JAX's own JAX_COMPILATION_CACHE_DIR, if set, wins. Training keeps its lowered train step in the same folder
+(`step_export`, `*-step-cache` files), so a warm start does not trace it either. The folder is trimmed to `MAX_CACHE_BYTES` at start-up
 (least recently used entries first). A folder that cannot be written (a read-only home) is one warning, and
 the command runs without a cache. `bridge-bench` never calls `enable`: it measures compile times.
 """

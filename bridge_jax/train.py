@@ -31,13 +31,16 @@ Workdir layout (`bridge_jax.workdir`):
                                     step, steps/s, last checkpoint and a heartbeat, rewritten at every log
                                     interval; `bridge-train --status WORKDIR` prints it and says whether the
                                     run is stale (no heartbeat for 3 periods: its process is gone);
-                                    "first_step_s" / "compile_s": time to this run's first step
+                                    "first_step_s" / "compile_s": time to this run's first step;
+                                    "step_cache": hit / written / off (`step_export`)
     xla.log                         XLA's "Very slow compile?" banners, kept out of the console (not with
                                     --debug)
 
 XLA keeps its compiled train step in a per-user cache folder (`--config.compilation_cache_dir`: "auto" =
 $BRIDGE_JAX_CACHE_DIR, else ~/.cache/bridge_jax/xla; "workdir" = <workdir>/xla_cache; "" = off), so a resumed
-run, or the next run of the same shapes, skips most of the compile.
+run, or the next run of the same shapes, skips most of the compile. A one-device run also keeps the lowered
+train step there (`step_export`: keyed by the package's source, the config, the shapes and the environment), so
+that the next run of the same code and config does not trace it again either.
 
 Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
 for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
@@ -62,7 +65,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bridge_jax import (checkpointing, cli, compile_cache, configs, console, files, inference, models, network, setup,
-                        train_step)
+                        step_export, train_step)
 from bridge_jax import workdir as workdir_mod, zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
@@ -475,7 +478,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                     local = np.asarray(next(data_iter)["cycle"], np.float32)
                     batch = _global_array(batch_sharding, local, global_shape)
                     if first_step:
-                        state, metrics = _first_step(step_fn, state, batch, run, run_status, is_main, origin)
+                        state, metrics, step_fn = _first_step(step_fn, state, batch, run, run_status, is_main, origin,
+                                                              {"config": run.config_json, "num_steps": num_steps,
+                                                               "steps_per_epoch": steps_per_epoch})
                         first_step = False
                     else:
                         state, metrics = step_fn(state, batch)
@@ -547,26 +552,35 @@ _RUNS_STARTED = 0
 
 
 def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is_main: bool,
-                origin: Optional[float] = None):
+                origin: Optional[float] = None, step_config: Optional[dict] = None):
     """The run's first train step, which compiles: announced in one line before, and timed (status.json
     "first_step_s": seconds from the start of the process, or from `origin` (its age in seconds when a later run
     of the same process started), to the end of this step; "compile_s": of those, the seconds JAX spent tracing,
     lowering and compiling or loading from the cache). Waits for the step to finish, which later steps never do
-    here."""
+    here.
+
+    With a compilation cache folder, the step goes through `step_export.cached_step` (keyed by `step_config`,
+    what shapes the step besides the shapes): a warm start loads the lowered step instead of tracing it.
+    status.json "step_cache" says which ("hit", "written" or "off"). Returns (state, metrics, the step function
+    the later steps call)."""
     if is_main:
         cache = f"first run only: {compile_cache.describe()}" if compile_cache.active_dir() else compile_cache.describe()
         tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
+    stats: dict = {}
     with compile_cache.CompileClock() as clock:
+        step_fn = step_export.cached_step(step_fn, state, batch, config=step_config or run.config_json,
+                                          folder=compile_cache.active_dir(), stats=stats)
         state, metrics = step_fn(state, batch)
         jax.block_until_ready((state, metrics))
     # Round once: the console line prints the very numbers status.json records (rounding 80.149 to 80.15 and then
     # to one decimal would print 80.2 beside a recorded 80.1 otherwise).
     first_step_s = round(compile_cache.process_age_s() - (origin or 0.0), 1)
     compile_s = round(clock.seconds, 1)
-    run_status.update(first_step_s=first_step_s, compile_s=compile_s)
+    run_status.update(first_step_s=first_step_s, compile_s=compile_s, step_cache=stats["step_cache"],
+                      **{k: v for k, v in stats.items() if k == "step_cache_error"})
     if is_main:
         tqdm.write(f"train step ready after {first_step_s:.1f} s (compiling {compile_s:.1f} s of it)", file=sys.stdout)
-    return state, metrics
+    return state, metrics, step_fn
 
 
 def _startup_line(run: setup.Run, config_name, dataset_size, val_data, workdir, start_step, num_steps) -> str:
