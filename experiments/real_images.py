@@ -375,14 +375,18 @@ HEADLINE = (("motorcycle", "d1_all"), ("motorcycle", "epe_all"), ("homography", 
 
 
 def pick_working_size(card: dict) -> str:
-    """"native" when the native size wins more of the `HEADLINE` numbers than the trained size does, else
-    "trained" (what the model's card then recommends, and `--working-size` defaults to). A tie on a number (a
-    check whose images are the trained size, so both sizes run the same) counts for neither."""
-    pairs = [(card[c]["native"][k], card[c]["trained"][k]) for c, k in HEADLINE
-             if "native" in card[c] and "trained" in card[c]]
-    native_wins = sum(n < t for n, t in pairs)
-    trained_wins = sum(t < n for n, t in pairs)
-    return "native" if native_wins > trained_wins else "trained"
+    """The working size a model's card recommends (and `--working-size` defaults to): the measured size that
+    beats every other measured size, one against one, on more of the `HEADLINE` numbers than it loses ("trained",
+    "native" or "HxW", as `--sizes` named it); "trained" when no size beats all the others. A tie on a number (a
+    check whose images are the trained size, so two sizes run the same) counts for neither."""
+    sizes = list(dict.fromkeys(s for c, _ in HEADLINE for s in card.get(c, {}) if s != "opencv"))
+
+    def beats(a: str, b: str) -> bool:
+        pairs = [(card[c][a][k], card[c][b][k]) for c, k in HEADLINE if a in card.get(c, {}) and b in card.get(c, {})]
+        return sum(x < y for x, y in pairs) > sum(y < x for x, y in pairs)
+
+    winners = [a for a in sizes if all(beats(a, b) for b in sizes if b != a)]
+    return winners[0] if winners else "trained"
 
 
 def markdown(results: dict, header: str) -> str:

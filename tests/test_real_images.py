@@ -98,6 +98,26 @@ def test_default_working_size_is_the_one_that_wins_most_checks():
     assert real_images.pick_working_size(card(0, tied=5)) == "trained"
 
 
+def test_default_working_size_beats_every_other_size_one_against_one():
+    """Three sizes on the 5 headline numbers (lower is better). A fixed size that wins the most numbers outright
+    but loses one against one to another does not win; the size that beats both does. A cycle (each beats one
+    and loses to another) gives "trained"."""
+    def card(rows):  # rows: size -> 5 values, in HEADLINE order
+        out = {}
+        for i, (check, key) in enumerate(real_images.HEADLINE):
+            for size, values in rows.items():
+                out.setdefault(check, {"opencv": {key: 0.0}}).setdefault(size, {})[key] = values[i]
+        return out
+    # 256x512 is best on 2 numbers (the most), but 192x384 beats it 3:2 and beats trained 3:2
+    rows = {"trained": [3, 3, 1, 1, 5], "192x384": [2, 2, 2, 2, 3], "256x512": [1, 1, 3, 3, 4]}
+    assert real_images.pick_working_size(card(rows)) == "192x384"
+    # trained beats 192x384 (3:2), 192x384 beats 256x512 (4:1), 256x512 beats trained (3:2): no winner
+    cycle = {"trained": [1, 1, 3, 3, 2], "192x384": [2, 2, 1, 1, 3], "256x512": [3, 3, 2, 2, 1]}
+    assert real_images.pick_working_size(card(cycle)) == "trained"
+    two = {"trained": [1, 1, 1, 2, 2], "native": [2, 2, 2, 1, 1]}
+    assert real_images.pick_working_size(card(two)) == "trained"
+
+
 def test_shift_set_and_its_metrics_hand_case():
     """`shift_set`: every pair's flow is its shift; `shift_metrics`: a prediction with the horizontal right and
     the vertical at half its size scores gain 1 / 0.5 and EPE 0 / |dy| / 2 (the mean of 4 and 8 px: 3 px)."""

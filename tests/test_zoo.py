@@ -111,6 +111,29 @@ def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
     assert zoo.default_refine(str(tmp_path)) == 0 and zoo.default_refine("no-such-name") == 0
 
 
+def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
+    """A card's "native" / "trained" pass through; its "HxW" is a fixed size, which load_predictor then runs at
+    unless told otherwise; a model without a card entry has none."""
+    for name in ("long", "demo"):
+        want = zoo.info(name)["default_working_size"]
+        got = zoo.default_working_size(name)
+        p = inference.load_predictor(name)
+        if want in ("native", "trained"):
+            assert got == want and p.native == (want == "native")
+        else:
+            h, w = (int(v) for v in want.split("x"))
+            assert got == (h, w) and (p.height, p.width) == (h, w) and not p.native
+    info = dict(zoo.info("demo"))
+    for card, size in (("192x384", (192, 384)), ("256X512", (256, 512)), ("native", "native"), (None, None)):
+        monkeypatch.setattr(zoo, "_shipped_info", lambda spec, card=card: {**info, "default_working_size": card})
+        assert zoo.default_working_size("demo") == size
+    monkeypatch.setattr(zoo, "_shipped_info", lambda spec: {**info, "default_working_size": "192x384"})
+    p = inference.load_predictor("demo")
+    assert (p.height, p.width) == (192, 384)
+    p = inference.load_predictor("demo", working_size="trained")
+    assert (p.height, p.width) == (info["height"], info["width"])
+
+
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
     """The shipped model, through the one predictor, on the trainer's held-out synthetic frames: flow and
     disparity well below zero motion, and the numbers recorded when it was built are reproduced."""

@@ -212,11 +212,15 @@ def trained_size(spec: str | os.PathLike) -> Optional[tuple[int, int]]:
     return None if meta is None else (int(meta["height"]), int(meta["width"]))
 
 
-def default_working_size(spec: str | os.PathLike) -> Optional[str]:
-    """The working size a shipped model's card recommends ("native" or "trained", measured by its real-image
-    checks), or None (no card entry, or not a shipped model)."""
+def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]]:
+    """The working size a shipped model's card recommends, chosen by its real-image checks: "native", "trained"
+    or a fixed (H, W) (the card's "HxW"); None (no card entry, or not a shipped model)."""
     meta = _shipped_info(spec)
-    return None if meta is None else meta.get("default_working_size")
+    value = None if meta is None else meta.get("default_working_size")
+    if isinstance(value, str) and value not in ("native", "trained"):
+        h, w = value.lower().split("x")
+        return int(h), int(w)
+    return value
 
 
 def default_refine(spec: str | os.PathLike) -> int:
@@ -362,8 +366,8 @@ def card_lines(name: str) -> list[str]:
             f"{k} {val[k]:.3f}" for k in ("flow_epe_all", "flow_epe_vs_zero", "disp_epe_all", "disp_d1_all")
             if isinstance(val.get(k), (int, float))))
     if meta.get("default_working_size"):
-        lines.append(f"  default working size: {meta['default_working_size']} (the one that won more of its "
-                     "real-image checks; --working-size overrides it)")
+        lines.append(f"  default working size: {meta['default_working_size']} (the size that beat each other size "
+                     "measured on more of its real-image checks; --working-size overrides it)")
     if meta.get("default_refine"):
         lines.append(f"  default refinement: {meta['default_refine']} pass(es) (chosen by its real-image checks, whose "
                      "numbers below are with it; --refine overrides it)")
