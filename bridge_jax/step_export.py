@@ -75,8 +75,7 @@ def step_key(config: dict, state, batch) -> str:
 
 
 def _single_device(tree) -> bool:
-    return all(len(getattr(x, "sharding", None).device_set) == 1 if hasattr(x, "sharding") else True
-               for x in jax.tree.leaves(tree))
+    return all(len(x.sharding.device_set) == 1 for x in jax.tree.leaves(tree) if hasattr(x, "sharding"))
 
 
 def _export(step_fn: Callable, state, batch):

@@ -552,7 +552,7 @@ _RUNS_STARTED = 0
 
 
 def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is_main: bool,
-                origin: Optional[float] = None, step_config: Optional[dict] = None):
+                origin: Optional[float], step_config: dict):
     """The run's first train step, which compiles: announced in one line before, and timed (status.json
     "first_step_s": seconds from the start of the process, or from `origin` (its age in seconds when a later run
     of the same process started), to the end of this step; "compile_s": of those, the seconds JAX spent tracing,
@@ -568,7 +568,7 @@ def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is
         tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
     stats: dict = {}
     with compile_cache.CompileClock() as clock:
-        step_fn = step_export.cached_step(step_fn, state, batch, config=step_config or run.config_json,
+        step_fn = step_export.cached_step(step_fn, state, batch, config=step_config,
                                           folder=compile_cache.active_dir(), stats=stats)
         state, metrics = step_fn(state, batch)
         jax.block_until_ready((state, metrics))
@@ -576,8 +576,8 @@ def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is
     # to one decimal would print 80.2 beside a recorded 80.1 otherwise).
     first_step_s = round(compile_cache.process_age_s() - (origin or 0.0), 1)
     compile_s = round(clock.seconds, 1)
-    run_status.update(first_step_s=first_step_s, compile_s=compile_s, step_cache=stats["step_cache"],
-                      **{k: v for k, v in stats.items() if k == "step_cache_error"})
+    error = {"step_cache_error": stats["step_cache_error"]} if "step_cache_error" in stats else {}
+    run_status.update(first_step_s=first_step_s, compile_s=compile_s, step_cache=stats["step_cache"], **error)
     if is_main:
         tqdm.write(f"train step ready after {first_step_s:.1f} s (compiling {compile_s:.1f} s of it)", file=sys.stdout)
     return state, metrics, step_fn

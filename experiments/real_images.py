@@ -115,9 +115,18 @@ def camera_change(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
+MARGIN = 0.1
+"""The share of a photo's height and width `homography_pair` crops from each side by default."""
+
+
+def crop_margins(shape: tuple, margin: float = MARGIN) -> tuple[int, int]:
+    """(rows, columns) `homography_pair` crops from each side of a photo of `shape` (h, w, ...)."""
+    return int(round(margin * shape[0])), int(round(margin * shape[1]))
+
+
 def homography_pair(photo: np.ndarray, patch_photo: np.ndarray, rng: np.random.Generator, *,
                     homography: np.ndarray | None = None, patches: list[dict] | None = None,
-                    margin: float = 0.1, photometric: bool = True) -> dict:
+                    margin: float = MARGIN, photometric: bool = True) -> dict:
     """Two frames of a real photo under known motion, with exact flow and occlusion.
 
     Frame t is the photo cropped by `margin` on each side; frame t+1 sees the same plane through the homography
@@ -129,7 +138,7 @@ def homography_pair(photo: np.ndarray, patch_photo: np.ndarray, rng: np.random.G
     "noc": bool (H, W) — the match lies inside frame t+1 and shows the same surface there}.
     """
     ph, pw = photo.shape[:2]
-    my, mx = int(round(margin * ph)), int(round(margin * pw))
+    my, mx = crop_margins(photo.shape, margin)
     height, width = ph - 2 * my, pw - 2 * mx
     g = random_homography(rng, height, width) if homography is None else np.asarray(homography, np.float64)
     if patches is None:
@@ -225,9 +234,8 @@ def zoom_set(seed: int = HOMOGRAPHY_SEED + 2) -> list[dict]:
     out = []
     for name in photos.HELDOUT_PHOTOS:
         image = photos.load_photo(name)
-        h = image.shape[0] - 2 * int(round(0.1 * image.shape[0]))
-        w = image.shape[1] - 2 * int(round(0.1 * image.shape[1]))
-        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        my, mx = crop_margins(image.shape)
+        cx, cy = (image.shape[1] - 2 * mx - 1) / 2.0, (image.shape[0] - 2 * my - 1) / 2.0  # centre of frame t
         for s in ZOOMS:
             g = np.array([[s, 0.0, (1 - s) * cx], [0.0, s, (1 - s) * cy], [0.0, 0.0, 1.0]])
             pair = homography_pair(image, image, rng, homography=g, patches=[])
@@ -304,13 +312,7 @@ def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pi
         panels["motorcycle"].append((name, visualize.disparity_to_color(d, vmax=64.0)))
         # 2. Homographies
         rows = []
-        for k, pair in enumerate(hom):
-            if method == "zero":
-                f = np.zeros_like(pair["flow"])
-            elif method == "opencv":
-                f = baselines.dis_flow(pair["frame_t"], pair["frame_t1"])
-            else:
-                f = method.predict([("flow", pair["frame_t"], pair["frame_t1"])])[0]
+        for k, (pair, f) in enumerate(zip(hom, _flows(method, hom))):
             rows.append(_pick(metrics.flow_metrics(f, pair["flow"], pair["valid"], pair["noc"]),
                               ("epe_all", "epe_noc", "fl_all")))
             if k == 0:
