@@ -8,9 +8,10 @@ after `bridge-train` (or a resumed run, or the second `bridge-evaluate`) loads w
     BRIDGE_JAX_CACHE_DIR        if set: the folder ("" = no cache)
     $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla
 
-JAX's own JAX_COMPILATION_CACHE_DIR, if set, wins. Training keeps its lowered train step in the same folder
-(`step_export`, `*-step-cache` files), so a warm start does not trace it either. The folder is trimmed to `MAX_CACHE_BYTES` at start-up
-(least recently used entries first). A folder that cannot be written (a read-only home) is one warning, and
+JAX's own JAX_COMPILATION_CACHE_DIR, if set, wins. Training keeps its compiled train step and prediction its
+compiled network whole in the same folder (`executable_cache`, `*-exec-cache` files), so that a warm start
+neither traces nor lowers them. The folder is trimmed to `MAX_CACHE_BYTES` at start-up (least recently used
+entries first). A folder that cannot be written (a read-only home) is one warning, and
 the command runs without a cache. `bridge-bench` never calls `enable`: it measures compile times.
 """
 
@@ -162,6 +163,7 @@ def process_age_s() -> float:
 _TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"
 _LOWER_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
 _BACKEND_EVENT = "/jax/core/compile/backend_compile_duration"
+_CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
 _CLOCKS: list["CompileClock"] = []
 _listening = False
 
@@ -179,21 +181,29 @@ def _on_duration(event: str, duration: float, **_kw) -> None:
             clock.compile_s += duration
 
 
+def _on_event(event: str, **_kw) -> None:
+    if event == _CACHE_HIT_EVENT:
+        for clock in _CLOCKS:
+            clock.cache_hits += 1
+
+
 class CompileClock:
     """Seconds JAX spent tracing, lowering and compiling (or loading from the cache) while active (`seconds`), and
-    the jaxpr traces and XLA backend compiles among them (`traces`, `trace_s`, `compiles`, `compile_s`), from
+    the jaxpr traces and XLA backend compiles among them (`traces`, `trace_s`, `compiles`, `compile_s`; a
+    compile that loaded its program from the persistent cache counts in `compiles` and in `cache_hits`), from
     `jax.monitoring` events; a context manager. Training's first step and the bench's recompilation check both
-    use it (one process-wide listener dispatches to the active clocks)."""
+    use it (process-wide listeners dispatch to the active clocks)."""
 
     def __init__(self):
         self.seconds = 0.0
-        self.traces = self.compiles = 0
+        self.traces = self.compiles = self.cache_hits = 0
         self.trace_s = self.compile_s = 0.0
 
     def __enter__(self) -> "CompileClock":
         global _listening
-        if not _listening:  # one listener for the process: jax.monitoring has no cheap way to remove one
+        if not _listening:  # one pair of listeners for the process: jax.monitoring has no cheap way to remove one
             jax.monitoring.register_event_duration_secs_listener(_on_duration)
+            jax.monitoring.register_event_listener(_on_event)
             _listening = True
         _CLOCKS.append(self)
         return self

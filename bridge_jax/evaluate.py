@@ -169,7 +169,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             files.check_output_dir(args.out, args.overwrite)
         predictor = (inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                               size_option="--working-size", refine=args.refine,
-                                              refine_option="--refine") if args.checkpoint else None)
+                                              refine_option="--refine",
+                                              executable_cache=compile_cache.active_dir())
+                     if args.checkpoint else None)
         if predictor is None and args.refine:
             raise EvaluationError("--refine needs --checkpoint (the baselines have nothing to refine)")
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, geometry, models, zoo
+from bridge_jax import checkpointing, executable_cache, geometry, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 
 DEFAULT_HEIGHT = 256
@@ -308,6 +308,9 @@ class Predictor:
         run whose number of pairs is known, as the commands do).
       refine: test-time refinement passes after the first estimate (`refine_maps`; 0 = none, at most
         `MAX_REFINE`); settable later through the `refine` attribute (each value compiles once).
+      executable_cache: a folder (the commands pass the compilation cache's) where each compiled network is
+        kept whole (`bridge_jax.executable_cache`), so that a later process with the same code, model and
+        shapes loads it without tracing or lowering; None (default) = off. Needs `model_cfg`; one device only.
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
     """
@@ -320,8 +323,10 @@ class Predictor:
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                  dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None,
                  native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS, compile_mode: str = "full",
-                 refine: int = 0):
+                 refine: int = 0, executable_cache: Optional[str] = None):
         self.refine = check_refine(refine)
+        self.executable_cache = executable_cache
+        self._kept: dict[tuple, Any] = {}  # (mode, shape, rows, refine) -> kept compiled network (`_program`)
         self.model_cfg = dict(model_cfg) if model_cfg else None
         self.model_name = (model_cfg or {}).get("name", "resnet_md")
         models.check_working_size(self.model_name, height, width)
@@ -366,8 +371,26 @@ class Predictor:
     def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
         """The compiled network on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps
         (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`)."""
-        return self._net(self.params, pairs, self.net.static_rows(is_stereo), _keep_vertical(is_stereo),
-                         self.refine)
+        args = (self.params, pairs, self.net.static_rows(is_stereo), _keep_vertical(is_stereo), self.refine)
+        return self._program(args)(*args)
+
+    def _program(self, args):
+        """The jitted network, or with `executable_cache` the compiled network for these arguments, loaded
+        from that folder or compiled and kept there (`executable_cache.cached_compile`)."""
+        if self.executable_cache is None or self.mesh is not None or self.model_cfg is None:
+            return self._net
+        pairs, rows = args[1], args[2]
+        key = (self.compile_mode, tuple(pairs.shape), str(pairs.dtype), rows, self.refine, self.executable_cache)
+        fn = self._kept.get(key)
+        if fn is None:
+            # What the network function closes over besides its arguments: the model, the compute dtype, one or
+            # two networks and the compile options.
+            config = {"program": "predictor", "model": self.model_cfg, "dtype": str(self.dtype),
+                      "separate": self.separate, "compile_mode": self.compile_mode}
+            fn = self._kept[key] = executable_cache.cached_compile(self._net, args, config=config,
+                                                                   folder=self.executable_cache,
+                                                                   static_argnums=(2, 4))
+        return fn
 
     def lower(self, batch: int, is_stereo: bool = False):
         """`jax.stages.Lowered` of the network for `batch` pairs (compile time, cost and memory analysis)."""
@@ -523,7 +546,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
                    dtype: Any = None, size_option: str = "working size", native: bool = False,
                    max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None,
                    compile_mode: str = "full", refine: Optional[int] = None,
-                   refine_option: str = "refine") -> Predictor:
+                   refine_option: str = "refine", executable_cache: Optional[str] = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
@@ -534,7 +557,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
     "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
     `DEFAULT_WORKING_SIZE`. `refine`: test-time refinement passes (`Predictor`); None = what a shipped model's
-    card recommends (`zoo.default_refine`), else 0.
+    card recommends (`zoo.default_refine`), else 0. `executable_cache`: see `Predictor`.
     Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or
     `refine_option` for a refine count out of range.
@@ -559,7 +582,8 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     if dtype is None:
         dtype = cfg.get("dtype")
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate,
-                     native=native, max_pixels=max_pixels, compile_mode=compile_mode, refine=refine)
+                     native=native, max_pixels=max_pixels, compile_mode=compile_mode, refine=refine,
+                     executable_cache=executable_cache)
 
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",

@@ -737,6 +737,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size", refine=args.refine,
                                                   refine_option="--refine",
+                                                  executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile, None))
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
@@ -746,6 +747,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size", refine=args.refine,
                                                   refine_option="--refine",
+                                                  executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile,
                                                                                           source.num_pairs))
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,

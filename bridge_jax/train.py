@@ -32,15 +32,15 @@ Workdir layout (`bridge_jax.workdir`):
                                     interval; `bridge-train --status WORKDIR` prints it and says whether the
                                     run is stale (no heartbeat for 3 periods: its process is gone);
                                     "first_step_s" / "compile_s": time to this run's first step;
-                                    "step_cache": hit / written / off (`step_export`)
+                                    "step_cache": hit / written / off (`executable_cache`)
     xla.log                         XLA's "Very slow compile?" banners, kept out of the console (not with
                                     --debug)
 
 XLA keeps its compiled train step in a per-user cache folder (`--config.compilation_cache_dir`: "auto" =
 $BRIDGE_JAX_CACHE_DIR, else ~/.cache/bridge_jax/xla; "workdir" = <workdir>/xla_cache; "" = off), so a resumed
-run, or the next run of the same shapes, skips most of the compile. A one-device run also keeps the lowered
-train step there (`step_export`: keyed by the package's source, the config, the shapes and the environment), so
-that the next run of the same code and config does not trace it again either.
+run, or the next run of the same shapes, skips most of the compile. A one-device run also keeps the compiled
+train step whole there (`executable_cache`: keyed by the package's source, the config, the shapes and the
+environment), so that the next run of the same code and config neither traces nor lowers it again.
 
 Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
 for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
@@ -65,7 +65,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bridge_jax import (checkpointing, cli, compile_cache, configs, console, files, inference, models, network, setup,
-                        step_export, train_step)
+                        executable_cache, train_step)
 from bridge_jax import workdir as workdir_mod, zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
@@ -556,30 +556,40 @@ def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is
     """The run's first train step, which compiles: announced in one line before, and timed (status.json
     "first_step_s": seconds from the start of the process, or from `origin` (its age in seconds when a later run
     of the same process started), to the end of this step; "compile_s": of those, the seconds JAX spent tracing,
-    lowering and compiling or loading from the cache). Waits for the step to finish, which later steps never do
-    here.
+    lowering and compiling or loading from the cache, or loading the kept step). Waits for the step to finish,
+    which later steps never do here.
 
-    With a compilation cache folder, the step goes through `step_export.cached_step` (keyed by `step_config`,
-    what shapes the step besides the shapes): a warm start loads the lowered step instead of tracing it.
+    With a compilation cache folder, the step goes through `executable_cache.cached_compile` (keyed by
+    `step_config`, what shapes the step besides the shapes): a warm start loads the compiled step instead of
+    tracing, lowering and looking it up.
     status.json "step_cache" says which ("hit", "written" or "off"). Returns (state, metrics, the step function
     the later steps call)."""
+    folder = compile_cache.active_dir()
     if is_main:
-        cache = f"first run only: {compile_cache.describe()}" if compile_cache.active_dir() else compile_cache.describe()
-        tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
+        kept = executable_cache.entry_path(step_fn, (state, batch), config=step_config, folder=folder)
+        if kept and os.path.exists(kept):
+            tqdm.write(f"loading the compiled train step for {run.height}x{run.width} ({compile_cache.describe()})",
+                       file=sys.stdout)
+        else:
+            cache = f"first run only: {compile_cache.describe()}" if folder else compile_cache.describe()
+            tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
     stats: dict = {}
     with compile_cache.CompileClock() as clock:
-        step_fn = step_export.cached_step(step_fn, state, batch, config=step_config,
-                                          folder=compile_cache.active_dir(), stats=stats)
+        t0 = time.perf_counter()
+        step_fn = executable_cache.cached_compile(step_fn, (state, batch), config=step_config, folder=folder,
+                                                  stats=stats)
+        prepare_s = time.perf_counter() - t0  # compiled (and kept) or loaded; ~0 when the call below compiles
         state, metrics = step_fn(state, batch)
         jax.block_until_ready((state, metrics))
     # Round once: the console line prints the very numbers status.json records (rounding 80.149 to 80.15 and then
     # to one decimal would print 80.2 beside a recorded 80.1 otherwise).
     first_step_s = round(compile_cache.process_age_s() - (origin or 0.0), 1)
-    compile_s = round(clock.seconds, 1)
-    error = {"step_cache_error": stats["step_cache_error"]} if "step_cache_error" in stats else {}
-    run_status.update(first_step_s=first_step_s, compile_s=compile_s, step_cache=stats["step_cache"], **error)
+    compile_s = round(max(clock.seconds, prepare_s), 1)  # a loaded step is no JAX compile event
+    error = {"step_cache_error": stats["cache_error"]} if "cache_error" in stats else {}
+    run_status.update(first_step_s=first_step_s, compile_s=compile_s, step_cache=stats["cache"], **error)
     if is_main:
-        tqdm.write(f"train step ready after {first_step_s:.1f} s (compiling {compile_s:.1f} s of it)", file=sys.stdout)
+        how = "loading" if stats["cache"] == "hit" else "compiling"
+        tqdm.write(f"train step ready after {first_step_s:.1f} s ({how} {compile_s:.1f} s of it)", file=sys.stdout)
     return state, metrics, step_fn
 
 
