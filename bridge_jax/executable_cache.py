@@ -142,17 +142,9 @@ def _load(path: str, device):
         return None
 
 
-def entry_path(fn: Callable, args: Sequence, *, config: dict, folder: Optional[str]) -> Optional[str]:
-    """Where `cached_compile` keeps `fn` compiled for `args` (whether or not the file exists yet), or None when
-    it would not keep it (no folder, not jitted, not on exactly one device)."""
-    devices = _devices(args)
-    if folder is None or not hasattr(fn, "lower") or len(devices) != 1:
-        return None
-    return os.path.join(folder, entry_key(config, args) + SUFFIX)
-
-
 def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Optional[str],
-                   stats: Optional[dict] = None, static_argnums: Sequence[int] = ()) -> Callable:
+                   stats: Optional[dict] = None, static_argnums: Sequence[int] = (),
+                   announce: Optional[Callable[[bool], None]] = None) -> Callable:
     """`fn` (a jitted function) compiled for `args`, loaded from `folder` when it holds the entry (`entry_key`
     of `config` and `args`), else compiled and written there.
 
@@ -162,14 +154,22 @@ def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Option
     compiled for), or `fn` itself when `folder` is None, when the arguments live on more than one device, when
     `fn` is not jitted, or when its executable cannot be kept. `stats`, if given, gets "cache" = "hit",
     "written" or "off", "cache_key", and "cache_error" saying why a compiled program was not kept.
+    `announce`, if given, is called once before anything is loaded or compiled, with True when an entry is
+    there to load (a caller's "loading ..." / "compiling ..." line).
     """
     stats = {} if stats is None else stats
-    path = entry_path(fn, args, config=config, folder=folder)
-    if path is None:
+    devices = _devices(args)
+    if folder is None or not hasattr(fn, "lower") or len(devices) != 1:
         stats["cache"] = "off"
+        if announce:
+            announce(False)
         return fn
-    stats["cache_key"] = os.path.basename(path)[:-len(SUFFIX)]
-    compiled = _load(path, next(iter(_devices(args))))
+    key = entry_key(config, args)
+    path = os.path.join(folder, key + SUFFIX)
+    stats["cache_key"] = key
+    if announce:
+        announce(os.path.exists(path))
+    compiled = _load(path, next(iter(devices)))
     if compiled is not None:
         stats["cache"] = "hit"
     else:
@@ -193,4 +193,4 @@ def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Option
     return lambda *a: compiled(*(x for i, x in enumerate(a) if i not in static))
 
 
-__all__ = ["cached_compile", "entry_key", "entry_path", "source_fingerprint", "SUFFIX"]
+__all__ = ["cached_compile", "entry_key", "source_fingerprint", "SUFFIX"]

@@ -565,19 +565,22 @@ def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is
     status.json "step_cache" says which ("hit", "written" or "off"). Returns (state, metrics, the step function
     the later steps call)."""
     folder = compile_cache.active_dir()
-    if is_main:
-        kept = executable_cache.entry_path(step_fn, (state, batch), config=step_config, folder=folder)
-        if kept and os.path.exists(kept):
-            tqdm.write(f"loading the compiled train step for {run.height}x{run.width} ({compile_cache.describe()})",
-                       file=sys.stdout)
+
+    def announce(kept: bool) -> None:
+        if not is_main:
+            return
+        if kept:
+            line = f"loading the compiled train step for {run.height}x{run.width} ({compile_cache.describe()})"
         else:
             cache = f"first run only: {compile_cache.describe()}" if folder else compile_cache.describe()
-            tqdm.write(f"compiling the train step for {run.height}x{run.width} ({cache})", file=sys.stdout)
+            line = f"compiling the train step for {run.height}x{run.width} ({cache})"
+        tqdm.write(line, file=sys.stdout)
+
     stats: dict = {}
     with compile_cache.CompileClock() as clock:
         t0 = time.perf_counter()
         step_fn = executable_cache.cached_compile(step_fn, (state, batch), config=step_config, folder=folder,
-                                                  stats=stats)
+                                                  stats=stats, announce=announce)
         prepare_s = time.perf_counter() - t0  # compiled (and kept) or loaded; ~0 when the call below compiles
         state, metrics = step_fn(state, batch)
         jax.block_until_ready((state, metrics))

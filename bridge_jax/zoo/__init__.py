@@ -32,6 +32,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from bridge_jax import cli
+
 HOME_ENV = "BRIDGE_JAX_HOME"
 ZOO_DIR = Path(__file__).resolve().parent
 UPSTREAM_DOWNLOAD = "https://drive.google.com/drive/folders/1l6HLF2Dq1ObsTjdJaAPKK6NOAZDOI0Rs"
@@ -217,10 +219,7 @@ def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, i
     or a fixed (H, W) (the card's "HxW"); None (no card entry, or not a shipped model)."""
     meta = _shipped_info(spec)
     value = None if meta is None else meta.get("default_working_size")
-    if isinstance(value, str) and value not in ("native", "trained"):
-        h, w = value.lower().split("x")
-        return int(h), int(w)
-    return value
+    return None if value is None else cli.parse_working_size(value)
 
 
 def default_refine(spec: str | os.PathLike) -> int:
