@@ -115,6 +115,38 @@ def test_guard_rejects_a_finite_gradient_whose_update_overflows():
     np.testing.assert_allclose(np.asarray(new["params"]["w"]), 1.0 - 1e-2, rtol=1e-6)
 
 
+@pytest.mark.parametrize("clip", [0.0, 0.5])
+def test_update_equals_adam_leaf_by_leaf(clip):
+    """apply_gradients runs Adam on the small parameters as one vector (params, gradient and moments concatenated,
+    then split back) and on the large ones as they are: two steps of it give what optax's Adam gives applied to the parameter tree leaf by leaf (with and without
+    clipping), in the state's own layout, and the norms it reports are numpy's."""
+    rng = np.random.default_rng(0)
+    tree = lambda: {"conv": {"kernel": rng.normal(size=(3, 3, 4, 5)), "bias": rng.normal(size=(5,))},
+                    "head": {"kernel": rng.normal(size=(1, 1, 5, 2))}, "scale": rng.normal(size=()),
+                    "big": rng.normal(size=(train_step.PACKED_LEAF_MAX_SIZE // 256 + 1, 256))}  # not packed
+    f32 = lambda t: jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), t)
+    params = f32(tree())
+    tx, schedule = train_step.make_optimizer(train_step.OptimizerConfig(lr=1e-2, clip_grad_norm=clip), 10)
+    state = train_step.create_train_state(params, tx, jnp.zeros((2,), jnp.uint32))
+    step = jax.jit(lambda s, g: train_step.apply_gradients(s, jnp.float32(1.0), {}, g, tx, schedule))
+    ref_params, ref_opt = params, tx.init(params)
+    for _ in range(2):
+        grads = f32(tree())
+        state, metrics = step(state, grads)
+        updates, ref_opt = tx.update(grads, ref_opt, ref_params)
+        ref_params = optax.apply_updates(ref_params, updates)
+        assert int(metrics["nonfinite"]) == 0
+        for got, want in ((state["params"], ref_params), (state["opt_state"], ref_opt)):
+            assert jax.tree.structure(got) == jax.tree.structure(want)
+            for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+                assert np.shape(a) == np.shape(b)
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+        norm = lambda t: np.sqrt(sum(np.sum(np.asarray(x, np.float64) ** 2) for x in jax.tree.leaves(t)))
+        assert float(metrics["grad_norm"]) == pytest.approx(norm(grads), rel=1e-5)
+        assert float(metrics["param_norm"]) == pytest.approx(norm(ref_params), rel=1e-5)
+    assert int(state["step"]) == 2
+
+
 # --------------------------------------------------------------------------------------------------------
 # metrics.jsonl reads as one run after resumes
 # --------------------------------------------------------------------------------------------------------
