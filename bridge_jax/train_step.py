@@ -27,7 +27,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec as P
 
@@ -111,56 +110,6 @@ def create_train_state(params, tx, rng) -> dict:
     return jax.jit(build)(params, rng)
 
 
-PACKED_LEAF_MAX_SIZE = 2**18
-"""Parameters of at most this many elements are updated as one concatenated vector (`apply_gradients`). Larger
-ones stay arrays of their own: concatenating and splitting them costs memory traffic (the paper's network, 58 M
-parameters, updated 1.1 s slower per step fully flat), while their number, and so their share of the compile,
-is small."""
-
-
-def _packer(params):
-    """(pack, unpack) for trees shaped like `params`: `pack(tree)` = (one vector of its leaves of at most
-    `PACKED_LEAF_MAX_SIZE` elements, concatenated; a tuple of the larger leaves), `unpack` the inverse."""
-    leaves, treedef = jax.tree.flatten(params)
-    small = [i for i, x in enumerate(leaves) if x.size <= PACKED_LEAF_MAX_SIZE]
-    large = [i for i, x in enumerate(leaves) if x.size > PACKED_LEAF_MAX_SIZE]
-    shapes = [leaves[i].shape for i in small]
-    offsets = np.cumsum([math.prod(shape) for shape in shapes])[:-1].tolist()
-
-    def pack(tree):
-        xs = jax.tree.leaves(tree)
-        vector = jnp.concatenate([jnp.ravel(xs[i]) for i in small]) if small else jnp.zeros((0,), jnp.float32)
-        return vector, tuple(xs[i] for i in large)
-
-    def unpack(packed):
-        vector, big = packed
-        xs = [None] * len(leaves)
-        for i, part, shape in zip(small, jnp.split(vector, offsets) if small else [], shapes):
-            xs[i] = part.reshape(shape)
-        for i, x in zip(large, big):
-            xs[i] = x
-        return jax.tree.unflatten(treedef, xs)
-
-    return pack, unpack
-
-
-def _pack_like(tree, params):
-    """`tree` with each subtree shaped like `params` (the params themselves, Adam's moments inside an optimiser
-    state) packed by `_packer`, and the function undoing it."""
-    treedef = jax.tree.structure(params)
-    if jax.tree_util.treedef_is_leaf(treedef):  # one array: nothing to concatenate (and every leaf would match)
-        return tree, lambda f: f
-    pack, unpack = _packer(params)
-    parts, outer = jax.tree.flatten(tree, is_leaf=lambda x: jax.tree.structure(x) == treedef)
-    is_params = [jax.tree.structure(x) == treedef for x in parts]
-
-    def undo(packed_tree):
-        parts = outer.flatten_up_to(packed_tree)
-        return outer.unflatten([unpack(x) if p else x for x, p in zip(parts, is_params)])
-
-    return outer.unflatten([pack(x) if p else x for x, p in zip(parts, is_params)]), undo
-
-
 def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     """Adam update with the non-finite guard. Returns (new_state, metrics).
 
@@ -172,29 +121,21 @@ def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
     The test is on the global L2 norms the metrics report anyway (a norm is NaN/Inf exactly when some element
     is, or when the values are beyond ~1e19, far past any usable weights): per-leaf `isfinite` reductions over
     the four trees made XLA:CPU compile the paper's full2 step in 161 s instead of 38 s.
-
-    The small parameters are updated as one vector (params, gradient and Adam's moments each concatenated, then
-    split back; `PACKED_LEAF_MAX_SIZE`): the same element-wise arithmetic in a handful of XLA kernels instead of
-    a few per parameter and tree. XLA:CPU compiles the update of `pwc_lite`'s 50 parameters in 1.5 s instead of
-    3.0 s, and the demo's whole step 1.5-2 s faster (2026-12-03, Intel Xeon, AVX-512). The state keeps its
-    per-parameter layout (checkpoints unchanged).
     """
-    flat_state, unravel_state = _pack_like(state, state["params"])
-    params, opt_state = flat_state["params"], flat_state["opt_state"]
-    grads = _pack_like(grads, state["params"])[0]
+    params, opt_state = state["params"], state["opt_state"]
     updates, new_opt_state = tx.update(grads, opt_state, params)
     new_params = optax.apply_updates(params, updates)
     grad_norm, update_norm = optax.tree.norm(grads), optax.tree.norm(updates)
     ok = (jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(update_norm)
           & jnp.isfinite(optax.tree.norm(new_params)))
-    new_state = {"params": new_params, "opt_state": new_opt_state, "step": flat_state["step"] + 1,
-                 "rng": jax.random.fold_in(flat_state["rng"], 0)}
-    new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, flat_state)
+    new_state = {"params": new_params, "opt_state": new_opt_state, "step": state["step"] + 1,
+                 "rng": jax.random.fold_in(state["rng"], 0)}
+    new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, state)
     metrics = {"loss": loss, **{f"loss/{k}": v for k, v in terms.items()},
                "grad_norm": grad_norm, "param_norm": optax.tree.norm(new_state["params"]),
                "update_norm": jnp.where(ok, update_norm, 0.0),
                "lr": schedule(state["step"]), "nonfinite": (~ok).astype(jnp.int32)}
-    return unravel_state(new_state), metrics
+    return new_state, metrics
 
 
 def crop_key(rng):
