@@ -99,6 +99,16 @@ def add_refine_option(parser: argparse.ArgumentParser) -> None:
                              "off, at most 8); default: what a shipped model's card recommends, else 0")
 
 
+def add_symmetry_option(parser: argparse.ArgumentParser) -> None:
+    """``--symmetry MODE``: test-time symmetry averaging (`inference.symmetric_estimate`); None = the model
+    card's choice."""
+    parser.add_argument("--symmetry", default=None, choices=("none", "flips", "dihedral"),
+                        help="test-time symmetry averaging: average the network's maps over the pair as given and "
+                             "mirrored left-right, upside-down and both ('flips', 4x the cost), plus those four "
+                             "transposed for flow pairs ('dihedral', 8x); default: what a shipped model's card "
+                             "recommends, else none")
+
+
 def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
     line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""

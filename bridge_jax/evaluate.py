@@ -138,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
+    cli.add_symmetry_option(p)
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")
@@ -169,17 +170,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             files.check_output_dir(args.out, args.overwrite)
         predictor = (inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                               size_option="--working-size", refine=args.refine,
-                                              refine_option="--refine",
+                                              refine_option="--refine", symmetry=args.symmetry,
+                                              symmetry_option="--symmetry",
                                               executable_cache=compile_cache.active_dir())
                      if args.checkpoint else None)
         if predictor is None and args.refine:
             raise EvaluationError("--refine needs --checkpoint (the baselines have nothing to refine)")
+        if predictor is None and args.symmetry not in (None, "none"):
+            raise EvaluationError("--symmetry needs --checkpoint (the baselines have no network to average)")
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
                            garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
                            out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,
                            progress=not args.no_progress,
                            extra_info={"checkpoint": args.checkpoint,
-                                       "refine": predictor.refine if predictor else None})
+                                       "refine": predictor.refine if predictor else None,
+                                       "symmetry": predictor.symmetry if predictor else None})
     except (ValueError, OSError) as e:  # EvaluationError, CorruptImageError...: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(results["markdown"])

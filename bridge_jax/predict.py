@@ -674,6 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
+    cli.add_symmetry_option(p)
     p.add_argument("--batch", type=int, default=4,
                    help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
@@ -736,7 +737,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size", refine=args.refine,
-                                                  refine_option="--refine",
+                                                  refine_option="--refine", symmetry=args.symmetry,
+                                                  symmetry_option="--symmetry",
                                                   executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile, None))
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
@@ -746,14 +748,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                  stereo_video=args.stereo_video)
             predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
                                                   size_option="--working-size", refine=args.refine,
-                                                  refine_option="--refine",
+                                                  refine_option="--refine", symmetry=args.symmetry,
+                                                  symmetry_option="--symmetry",
                                                   executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile,
                                                                                           source.num_pairs))
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
-                                  info={"checkpoint": args.checkpoint, "refine": predictor.refine})
+                                  info={"checkpoint": args.checkpoint, "refine": predictor.refine,
+                                        "symmetry": predictor.symmetry})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))

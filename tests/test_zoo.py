@@ -100,6 +100,18 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
     assert f"default refinement: {meta['default_refine']} pass(es)" in out and meta["default_refine"] >= 1
 
 
+def test_shipped_descriptions_name_their_cards_defaults():
+    """`bridge-zoo list` says how each shipped model runs by default: its card's working size, refinement
+    passes and symmetry averaging (a description left behind when a card changed was caught here)."""
+    words = {1: "one"}
+    for name in ("demo", "long"):
+        meta, text = zoo.info(name), zoo.entry(name).description
+        assert f"by default at {'--working-size ' if meta['default_working_size'] == 'native' else ''}" \
+               f"{meta['default_working_size']} with {words[meta['default_refine']]} --refine pass" in text, name
+        symmetry = meta.get("default_symmetry", "none")
+        assert (f"--symmetry {symmetry}" in text) == (symmetry != "none"), name
+
+
 def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
     """The shipped cards recommend test-time refinement passes, which load_predictor then uses unless told
     otherwise; a checkpoint path (no card) runs unrefined."""

@@ -25,9 +25,10 @@ also appended to `--json OUT` (JSON lines; written to a temporary name and renam
 measurement in a fresh subprocess so that each peak RSS is that measurement's own.
 
 Time to a first answer (`bridge_jax.bench.first`): `first_prediction` times a fresh `python -m bridge_jax.predict`
-on one 512x256 photo pair (`--checkpoint`, default demo; `--working-size` passed through), `first_step` a fresh
-`python -m bridge_jax.train` (default --config=demo at 128x256; `--height`, `--width`, `--cycles`, `--dtype`,
-`--set` passed through as `--config.` options) for 2 steps, also reading `first_step_s` from its status.json.
+on one 512x256 photo pair (`--checkpoint`, default demo; `--working-size`, `--symmetry` passed through),
+`first_step` a fresh `python -m bridge_jax.train` (default --config=demo at 128x256; `--height`, `--width`,
+`--cycles`, `--dtype`, `--set` passed through as `--config.` options) for 2 steps, also reading `first_step_s` from
+its status.json.
 Each runs with a cold persistent compilation cache (a fresh empty BRIDGE_JAX_CACHE_DIR for each of `--repeats`
 runs, default 1 for these two), a warm one (the same folder again) and, for first_prediction, once with the cache
 off (BRIDGE_JAX_CACHE_DIR=""); JAX_COMPILATION_CACHE_DIR is removed from the child's environment. The records have
@@ -145,6 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", default="demo", help="first_prediction: the model (a shipped name or a folder)")
     p.add_argument("--working-size", default=None, metavar="HxW|native|trained",
                    help="first_prediction: bridge_jax.predict's --working-size (default: the model's own choice)")
+    p.add_argument("--symmetry", default=None, choices=("none", "flips", "dihedral"),
+                   help="first_prediction: bridge_jax.predict's --symmetry (default: the model's own choice)")
     return p
 
 

@@ -146,10 +146,12 @@ def write_photo_pair(folder: str, height: int = PAIR_SIZE[0], width: int = PAIR_
     return paths[0], paths[1]
 
 
-def predict_command(a: str, b: str, out: str, checkpoint: str, working_size: str | None = None) -> list[str]:
+def predict_command(a: str, b: str, out: str, checkpoint: str, working_size: str | None = None,
+                    symmetry: str | None = None) -> list[str]:
     cmd = [sys.executable, "-m", "bridge_jax.predict", "--checkpoint", checkpoint, "--pair-kind", "flow", a, b,
            "--out", out]
-    return cmd + (["--working-size", working_size] if working_size else [])
+    return (cmd + (["--working-size", working_size] if working_size else [])
+            + (["--symmetry", symmetry] if symmetry else []))
 
 
 def measure_first_prediction(args) -> dict:
@@ -157,11 +159,12 @@ def measure_first_prediction(args) -> dict:
     checkpoint = args.checkpoint
     with tempfile.TemporaryDirectory(prefix="bridge_bench_pair_") as tmp:
         a, b = write_photo_pair(tmp)
-        rec = time_cold_warm(lambda out: predict_command(a, b, out, checkpoint, args.working_size),
+        rec = time_cold_warm(lambda out: predict_command(a, b, out, checkpoint, args.working_size, args.symmetry),
                              repeats=int(args.repeats), label="first_prediction", off=True)
-    size = args.working_size or "default"
-    return dict(what="first_prediction", variant=f"{checkpoint} working size {size}", checkpoint=checkpoint,
-                working_size=size, height=PAIR_SIZE[0], width=PAIR_SIZE[1], pair_kind="flow",
+    size, symmetry = args.working_size or "default", args.symmetry or "default"
+    variant = f"{checkpoint} working size {size}" + (f" symmetry {symmetry}" if args.symmetry else "")
+    return dict(what="first_prediction", variant=variant, checkpoint=checkpoint,
+                working_size=size, symmetry=symmetry, height=PAIR_SIZE[0], width=PAIR_SIZE[1], pair_kind="flow",
                 repeats=int(args.repeats), **rec)
 
 
