@@ -102,7 +102,8 @@ def add_refine_option(parser: argparse.ArgumentParser) -> None:
 def add_symmetry_option(parser: argparse.ArgumentParser) -> None:
     """``--symmetry MODE``: test-time symmetry averaging (`inference.symmetric_estimate`); None = the model
     card's choice."""
-    parser.add_argument("--symmetry", default=None, choices=("none", "flips", "dihedral"),
+    from bridge_jax.inference import SYMMETRY_MODES  # here, not at the top: inference imports zoo, which imports cli
+    parser.add_argument("--symmetry", default=None, choices=SYMMETRY_MODES,
                         help="test-time symmetry averaging: average the network's maps over the pair as given and "
                              "mirrored left-right, upside-down and both ('flips', 4x the cost), plus those four "
                              "transposed for flow pairs ('dihedral', 8x); default: what a shipped model's card "
