@@ -8,6 +8,7 @@ import os
 import sys
 import textwrap
 import warnings
+from collections.abc import Sequence
 
 DEBUG_ENV = "BRIDGE_JAX_DEBUG"
 
@@ -99,11 +100,11 @@ def add_refine_option(parser: argparse.ArgumentParser) -> None:
                              "off, at most 8); default: what a shipped model's card recommends, else 0")
 
 
-def add_symmetry_option(parser: argparse.ArgumentParser) -> None:
+def add_symmetry_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> None:
     """``--symmetry MODE``: test-time symmetry averaging (`inference.symmetric_estimate`); None = the model
-    card's choice."""
-    from bridge_jax.inference import SYMMETRY_MODES  # here, not at the top: inference imports zoo, which imports cli
-    parser.add_argument("--symmetry", default=None, choices=SYMMETRY_MODES,
+    card's choice. `modes`: `inference.SYMMETRY_MODES` (passed in: inference imports zoo, which imports this
+    module)."""
+    parser.add_argument("--symmetry", default=None, choices=tuple(modes),
                         help="test-time symmetry averaging: average the network's maps over the pair as given and "
                              "mirrored left-right, upside-down and both ('flips', 4x the cost), plus those four "
                              "transposed for flow pairs ('dihedral', 8x); default: what a shipped model's card "

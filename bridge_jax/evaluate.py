@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
-    cli.add_symmetry_option(p)
+    cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")

@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
                          "stereo: left/right pairs); a shared network is the same for both")
     cli.add_refine_option(ap)
-    cli.add_symmetry_option(ap)
+    cli.add_symmetry_option(ap, inference.SYMMETRY_MODES)
     compile_cache.add_option(ap)
     cli.add_debug_flag(ap)
     return ap

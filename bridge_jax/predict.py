@@ -674,7 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
-    cli.add_symmetry_option(p)
+    cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
     p.add_argument("--batch", type=int, default=4,
                    help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
