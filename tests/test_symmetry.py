@@ -26,7 +26,7 @@ def test_an_exact_matcher_stays_exact_under_every_copy(rng, symmetry):
     """The matcher finds the true integer shift of any copy it is given, so the average of the copies mapped
     back is the true (3, -2) again, for flow and stereo rows; a copy mapped back with a wrong sign (u of a
     left-right flip, v of an upside-down flip) or unswapped channels (a transposition) would pull the mean
-    off it (e.g. to (1.5, -1) with one wrong sign among four copies)."""
+    off it (u to 1.5 with one wrong sign among four copies)."""
     pairs = _shifted_pair(rng, 3, -2)
     for keep_vertical in (None, jnp.ones(1), jnp.zeros(1)):
         out = np.asarray(inference.symmetric_estimate(shift_matcher(), pairs, symmetry, keep_vertical))
