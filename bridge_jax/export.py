@@ -50,9 +50,8 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
         if not predictor.refine and predictor.symmetry == "none":
             maps = predictor.net(params, pairs, rows)
             return maps["px"][0], maps["frac"][0]
-        # the symmetry copies are stacked on the batch axis: a separate-networks model needs its rows repeated
-        net = lambda x: predictor.net(params, x, rows * (x.shape[0] // batch))["px"][0]
-        px = inference.predicted_maps(net, pairs, keep_vertical, predictor.refine, predictor.symmetry)
+        px = inference.predicted_maps(predictor.net, params, pairs, rows, keep_vertical, predictor.refine,
+                                      predictor.symmetry)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)

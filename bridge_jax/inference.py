@@ -358,11 +358,15 @@ def symmetric_estimate(estimate, pairs: jax.Array, symmetry: str,
     return total / count[:, None, None, None]
 
 
-def predicted_maps(net, pairs: jax.Array, keep_vertical: jax.Array, refine: int, symmetry: str) -> jax.Array:
-    """What a predictor answers for `pairs`: the network's estimate (averaged over the `symmetry` copies,
-    `symmetric_estimate`), then `refine` refinement passes (`refine_maps`, each pass's residual averaged the
-    same way). `net`: `(M, h, w, 6)` -> `(M, h, w, 2)` working-pixel maps for any batch M and working size;
-    `pairs (N, H, W, 6)`, `keep_vertical (N,)` as for `refine_maps`. Returns `(N, H, W, 2)`."""
+def predicted_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], keep_vertical: jax.Array,
+                   refine: int, symmetry: str) -> jax.Array:
+    """What a predictor answers for `pairs`: the network's scale-0 pixel map (averaged over the `symmetry`
+    copies, `symmetric_estimate`), then `refine` refinement passes (`refine_maps`, each pass's residual averaged
+    the same way). `network(params, x, rows)`: a `Network` and its static rows (`Network.static_rows`, one per
+    pair); `pairs (N, H, W, 6)`, `keep_vertical (N,)` as for `refine_maps`. Returns `(N, H, W, 2)`."""
+    n = pairs.shape[0]
+    # symmetric_estimate stacks copies of the N pairs on the batch axis: separate networks need their rows repeated
+    net = lambda x: network(params, x, rows * (x.shape[0] // n))["px"][0]
     estimate = lambda x: symmetric_estimate(net, x, symmetry, keep_vertical)
     maps = estimate(pairs)
     return refine_maps(estimate, pairs, maps, keep_vertical, refine) if refine else maps
@@ -443,10 +447,7 @@ class Predictor:
 
     def _forward(self, params, pairs, rows, keep_vertical, refine, symmetry):
         self.trace_count += 1  # Python side effect: runs once per trace
-        n = pairs.shape[0]
-        # symmetric_estimate stacks copies of the N pairs; separate networks need their rows' kinds repeated
-        net = lambda x: self.net(params, x, rows * (x.shape[0] // n))["px"][0]
-        return predicted_maps(net, pairs, keep_vertical, refine, symmetry)
+        return predicted_maps(self.net, params, pairs, rows, keep_vertical, refine, symmetry)
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
