@@ -111,6 +111,16 @@ def add_symmetry_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -
                              "recommends, else none")
 
 
+def add_polish_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> None:
+    """``--polish MODE``: test-time photometric polish (`bridge_jax.polish`); None = the model card's choice.
+    `modes`: `polish.POLISH_MODES` (passed in, like `add_symmetry_option`'s)."""
+    parser.add_argument("--polish", default=None, choices=tuple(modes),
+                        help="test-time polish of the final maps against the images themselves: 'photometric' "
+                             "lets each pixel take a neighbour's value where that matches clearly better (sharper "
+                             "motion boundaries), then takes a few Lucas-Kanade steps (sub-pixel); 'none' = the "
+                             "network's maps as they are; default: what a shipped model's card recommends, else none")
+
+
 def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
     line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""

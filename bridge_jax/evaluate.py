@@ -139,6 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
     cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
+    cli.add_polish_option(p, inference.POLISH_MODES)
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")
@@ -172,19 +173,23 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                               size_option="--working-size", refine=args.refine,
                                               refine_option="--refine", symmetry=args.symmetry,
                                               symmetry_option="--symmetry",
+                                              polish=args.polish, polish_option="--polish",
                                               executable_cache=compile_cache.active_dir())
                      if args.checkpoint else None)
         if predictor is None and args.refine:
             raise EvaluationError("--refine needs --checkpoint (the baselines have nothing to refine)")
         if predictor is None and args.symmetry not in (None, "none"):
             raise EvaluationError("--symmetry needs --checkpoint (the baselines have no network to average)")
+        if predictor is None and args.polish not in (None, "none"):
+            raise EvaluationError("--polish needs --checkpoint (the baselines have no network maps to polish)")
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
                            garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
                            out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,
                            progress=not args.no_progress,
                            extra_info={"checkpoint": args.checkpoint,
                                        "refine": predictor.refine if predictor else None,
-                                       "symmetry": predictor.symmetry if predictor else None})
+                                       "symmetry": predictor.symmetry if predictor else None,
+                                       "polish": predictor.polish if predictor else None})
     except (ValueError, OSError) as e:  # EvaluationError, CorruptImageError...: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(results["markdown"])

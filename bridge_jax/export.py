@@ -7,8 +7,8 @@
 The exported function is the predictor's network (`bridge_jax.inference.Predictor`) at its working size: it maps
 `pairs (B, H, W, 6)` float32 in [0, 1] (image_a RGB, image_b RGB at the working size) to a tuple `(px0, frac0)`,
 each `(B, H, W, 2)` float32: the full-resolution map in pixels and as fractions of (W, H), after the
-predictor's test-time refinement passes and symmetry averaging (`--refine`, `--symmetry`; default: what a
-shipped model's card recommends, as for predict; `inference.predicted_maps`). The working size
+predictor's test-time refinement passes, symmetry averaging and polish (`--refine`, `--symmetry`, `--polish`;
+default: what a shipped model's card recommends, as for predict; `inference.predicted_maps`). The working size
 `H x W` defaults to the size the checkpoint was trained at, else 256 x 512 (as for predict and evaluate); B is
 `--batch`. Load and run it without bridge_jax's model code:
 
@@ -47,11 +47,11 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
     keep_vertical = jnp.full((batch,), 0.0 if task == "stereo" else 1.0)
 
     def infer(pairs):
-        if not predictor.refine and predictor.symmetry == "none":
+        if not predictor.refine and predictor.symmetry == "none" and predictor.polish == "none":
             maps = predictor.net(params, pairs, rows)
             return maps["px"][0], maps["frac"][0]
         px = inference.predicted_maps(predictor.net, params, pairs, rows, keep_vertical, predictor.refine,
-                                      predictor.symmetry)
+                                      predictor.symmetry, predictor.polish)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
@@ -90,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "stereo: left/right pairs); a shared network is the same for both")
     cli.add_refine_option(ap)
     cli.add_symmetry_option(ap, inference.SYMMETRY_MODES)
+    cli.add_polish_option(ap, inference.POLISH_MODES)
     compile_cache.add_option(ap)
     cli.add_debug_flag(ap)
     return ap
@@ -104,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
                                              dtype=args.dtype, size_option="--height/--width", refine=args.refine,
                                              refine_option="--refine", symmetry=args.symmetry,
-                                             symmetry_option="--symmetry")
+                                             symmetry_option="--symmetry", polish=args.polish,
+                                             polish_option="--polish")
         exp = export_network(predictor, batch=args.batch, task=args.task)
         out = serialize_to_file(exp, args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
@@ -114,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     shape = [args.batch, predictor.height, predictor.width]
     print(json.dumps({"out": str(out), "bytes": out.stat().st_size, "model": predictor.model_cfg["name"],
                       "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype,
-                      "refine": predictor.refine, "symmetry": predictor.symmetry}))
+                      "refine": predictor.refine, "symmetry": predictor.symmetry,
+                      "polish": predictor.polish}))
     return 0
 
 

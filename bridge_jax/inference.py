@@ -25,7 +25,9 @@ float32; `dtype="bfloat16"` only changes the compute dtype.
 composes the residual it finds with that estimate (`refine_maps`): test-time iterative residual refinement,
 the same network with no new weights, at K + 1 times the cost. `symmetry="flips"` averages each estimate over
 the pair as given and mirrored left-right, upside-down and both (`symmetric_estimate`; 4 times the cost,
-"dihedral" adds the transposed copies for flow pairs). A shipped model's card may recommend a K and a symmetry.
+"dihedral" adds the transposed copies for flow pairs). `polish="photometric"` then corrects the map locally
+against the images at the working size (`bridge_jax.polish`: bled motion boundaries and sub-pixel noise, with
+the training's photometric criterion). A shipped model's card may recommend a K, a symmetry and a polish.
 """
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import checkpointing, executable_cache, geometry, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
+from bridge_jax.polish import POLISH_MODES, check_polish, polish_maps
 
 DEFAULT_HEIGHT = 256
 DEFAULT_WIDTH = 512
@@ -359,17 +362,20 @@ def symmetric_estimate(estimate, pairs: jax.Array, symmetry: str,
 
 
 def predicted_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], keep_vertical: jax.Array,
-                   refine: int, symmetry: str) -> jax.Array:
+                   refine: int, symmetry: str, polish: str = "none") -> jax.Array:
     """What a predictor answers for `pairs`: the network's scale-0 pixel map (averaged over the `symmetry`
     copies, `symmetric_estimate`), then `refine` refinement passes (`refine_maps`, each pass's residual averaged
-    the same way). `network(params, x, rows)`: a `Network` and its static rows (`Network.static_rows`, one per
-    pair); `pairs (N, H, W, 6)`, `keep_vertical (N,)` as for `refine_maps`. Returns `(N, H, W, 2)`."""
+    the same way), then the `polish` ("photometric": `polish.polish_maps`). `network(params, x, rows)`: a
+    `Network` and its static rows (`Network.static_rows`, one per pair); `pairs (N, H, W, 6)`, `keep_vertical
+    (N,)` as for `refine_maps`. Returns `(N, H, W, 2)`."""
     n = pairs.shape[0]
     # symmetric_estimate stacks copies of the N pairs on the batch axis: separate networks need their rows repeated
     net = lambda x: network(params, x, rows * (x.shape[0] // n))["px"][0]
     estimate = lambda x: symmetric_estimate(net, x, symmetry, keep_vertical)
     maps = estimate(pairs)
-    return refine_maps(estimate, pairs, maps, keep_vertical, refine) if refine else maps
+    if refine:
+        maps = refine_maps(estimate, pairs, maps, keep_vertical, refine)
+    return polish_maps(pairs, maps, keep_vertical) if polish == "photometric" else maps
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -396,6 +402,8 @@ class Predictor:
         `MAX_REFINE`); settable later through the `refine` attribute (each value compiles once).
       symmetry: test-time symmetry averaging of every estimate (`SYMMETRY_MODES`, `symmetric_estimate`;
         "none" = off); settable later through the `symmetry` attribute (each value compiles once).
+      polish: test-time polish of the final maps (`POLISH_MODES`; "photometric" = `polish.polish_maps`,
+        "none" = off); settable later through the `polish` attribute (each value compiles once).
       executable_cache: a folder (the commands pass the compilation cache's) where each compiled network is
         kept whole (`bridge_jax.executable_cache`), so that a later process with the same code, model and
         shapes loads it without tracing or lowering; None (default) = off. Needs `model_cfg`; one device only.
@@ -411,11 +419,14 @@ class Predictor:
     def __init__(self, graphdef, params, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                  dtype: Any = None, model_cfg: Optional[dict] = None, separate: bool = False, mesh=None,
                  native: bool = False, max_pixels: int = NATIVE_MAX_PIXELS, compile_mode: str = "full",
-                 refine: int = 0, symmetry: str = "none", executable_cache: Optional[str] = None):
+                 refine: int = 0, symmetry: str = "none", polish: str = "none",
+                 executable_cache: Optional[str] = None):
         self.refine = check_refine(refine)
         self.symmetry = check_symmetry(symmetry)
+        self.polish = check_polish(polish)
         self.executable_cache = executable_cache
-        self._kept: dict[tuple, Any] = {}  # (mode, shape, rows, refine, symmetry) -> kept compiled network (`_program`)
+        # (mode, shape, rows, refine, symmetry, polish) -> kept compiled network (`_program`)
+        self._kept: dict[tuple, Any] = {}
         self.model_cfg = dict(model_cfg) if model_cfg else None
         self.model_name = (model_cfg or {}).get("name", "resnet_md")
         models.check_working_size(self.model_name, height, width)
@@ -441,13 +452,13 @@ class Predictor:
         if fn is None:
             options = {"xla_backend_optimization_level": 0} if self.compile_mode == "fast" else None
             shardings = {} if self.mesh is None else {"out_shardings": NamedSharding(self.mesh, P())}
-            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2, 4, 5),
+            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2, 4, 5, 6),
                                                          compiler_options=options, **shardings)
         return fn
 
-    def _forward(self, params, pairs, rows, keep_vertical, refine, symmetry):
+    def _forward(self, params, pairs, rows, keep_vertical, refine, symmetry, polish):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return predicted_maps(self.net, params, pairs, rows, keep_vertical, refine, symmetry)
+        return predicted_maps(self.net, params, pairs, rows, keep_vertical, refine, symmetry, polish)
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
@@ -459,7 +470,7 @@ class Predictor:
         """The compiled network on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps
         (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`)."""
         args = (self.params, pairs, self.net.static_rows(is_stereo), _keep_vertical(is_stereo), self.refine,
-                self.symmetry)
+                self.symmetry, self.polish)
         return self._program(args)(*args)
 
     def _program(self, args):
@@ -469,7 +480,7 @@ class Predictor:
             return self._net
         pairs, rows = args[1], args[2]
         key = (self.compile_mode, tuple(pairs.shape), str(pairs.dtype), rows, self.refine, self.symmetry,
-               self.executable_cache)
+               self.polish, self.executable_cache)
         fn = self._kept.get(key)
         if fn is None:
             # What the network function closes over besides its arguments: the model, the compute dtype, one or
@@ -478,7 +489,7 @@ class Predictor:
                       "separate": self.separate, "compile_mode": self.compile_mode}
             fn = self._kept[key] = executable_cache.cached_compile(self._net, args, config=config,
                                                                    folder=self.executable_cache,
-                                                                   static_argnums=(2, 4, 5))
+                                                                   static_argnums=(2, 4, 5, 6))
         return fn
 
     def lower(self, batch: int, is_stereo: bool = False):
@@ -486,7 +497,7 @@ class Predictor:
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
         rows = (is_stereo,) * batch
         return self._net.lower(self.params, spec, self.net.static_rows(rows), _keep_vertical(rows), self.refine,
-                               self.symmetry)
+                               self.symmetry, self.polish)
 
     def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
         """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.
@@ -637,6 +648,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
                    max_pixels: int = NATIVE_MAX_PIXELS, working_size: Any = None,
                    compile_mode: str = "full", refine: Optional[int] = None,
                    refine_option: str = "refine", symmetry: Optional[str] = None, symmetry_option: str = "symmetry",
+                   polish: Optional[str] = None, polish_option: str = "polish",
                    executable_cache: Optional[str] = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
@@ -649,14 +661,17 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
     `DEFAULT_WORKING_SIZE`. `refine`: test-time refinement passes (`Predictor`); None = what a shipped model's
     card recommends (`zoo.default_refine`), else 0. `symmetry`: test-time symmetry averaging (`Predictor`);
-    None = what a shipped model's card recommends (`zoo.default_symmetry`), else "none". `executable_cache`: see
-    `Predictor`.
+    None = what a shipped model's card recommends (`zoo.default_symmetry`), else "none". `polish`: test-time
+    polish (`Predictor`); None = what a shipped model's card recommends (`zoo.default_polish`), else "none".
+    `executable_cache`: see `Predictor`.
     Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or
-    `refine_option` for a refine count out of range, or `symmetry_option` for an unknown symmetry.
+    `refine_option` for a refine count out of range, `symmetry_option` for an unknown symmetry, or
+    `polish_option` for an unknown polish.
     """
     refine = check_refine(zoo.default_refine(path) if refine is None else refine, refine_option)
     symmetry = check_symmetry(zoo.default_symmetry(path) if symmetry is None else symmetry, symmetry_option)
+    polish = check_polish(zoo.default_polish(path) if polish is None else polish, polish_option)
     if working_size is None and height is None and width is None and not native:
         working_size = zoo.default_working_size(path) or DEFAULT_WORKING_SIZE
     if working_size == NATIVE:
@@ -677,10 +692,11 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
         dtype = cfg.get("dtype")
     return Predictor(graphdef, params, height=height, width=width, dtype=dtype, model_cfg=cfg, separate=separate,
                      native=native, max_pixels=max_pixels, compile_mode=compile_mode, refine=refine,
-                     symmetry=symmetry, executable_cache=executable_cache)
+                     symmetry=symmetry, polish=polish, executable_cache=executable_cache)
 
 
 __all__ = ["Predictor", "load_predictor", "trained_working_size", "native_working_size", "NATIVE", "resize_notice",
            "to_rgb_float", "resize_images", "COMPILE_MODES", "compile_mode_for",
            "flow_to_input_resolution", "disparity_to_input_resolution", "map_to_input_resolution", "PAIR_KINDS",
-           "input_size", "minimum_input_size", "SYMMETRY_MODES", "symmetric_estimate"]
+           "input_size", "minimum_input_size", "SYMMETRY_MODES", "symmetric_estimate",
+           "POLISH_MODES"]

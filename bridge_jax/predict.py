@@ -675,6 +675,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
     cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
+    cli.add_polish_option(p, inference.POLISH_MODES)
     p.add_argument("--batch", type=int, default=4,
                    help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
@@ -739,6 +740,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                                   size_option="--working-size", refine=args.refine,
                                                   refine_option="--refine", symmetry=args.symmetry,
                                                   symmetry_option="--symmetry",
+                                                  polish=args.polish, polish_option="--polish",
                                                   executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile, None))
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
@@ -750,6 +752,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                                   size_option="--working-size", refine=args.refine,
                                                   refine_option="--refine", symmetry=args.symmetry,
                                                   symmetry_option="--symmetry",
+                                                  polish=args.polish, polish_option="--polish",
                                                   executable_cache=compile_cache.active_dir(),
                                                   compile_mode=inference.compile_mode_for(args.compile,
                                                                                           source.num_pairs))
@@ -757,7 +760,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
                                   info={"checkpoint": args.checkpoint, "refine": predictor.refine,
-                                        "symmetry": predictor.symmetry})
+                                        "symmetry": predictor.symmetry, "polish": predictor.polish})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))

@@ -27,9 +27,10 @@ next to OpenCV on the same inputs at full resolution:
 Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
 panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
 first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`; at the first
-`--refine` and `--symmetry` values, which the card then recommends). `--refine 0,2` scores each model without
+`--refine`, `--symmetry` and `--polish` values, which the card then recommends). `--refine 0,2` scores each model without
 and with two test-time refinement passes (`inference.refine_maps`), `--symmetry none,flips` without and with
-test-time symmetry averaging (`inference.symmetric_estimate`); the default of both, `card`, runs each model as
+test-time symmetry averaging (`inference.symmetric_estimate`), `--polish none,photometric` without and with
+the test-time photometric polish (`bridge_jax.polish`); the default of all three, `card`, runs each model as
 its card says.
 """
 from __future__ import annotations
@@ -431,6 +432,9 @@ def main(argv=None) -> int:
     p.add_argument("--symmetry", default="card",
                    help="comma list of test-time symmetry averagings to score (none, flips, dihedral; each a "
                         "method), or 'card' = what each model's card recommends (none for a checkpoint path)")
+    p.add_argument("--polish", default="card",
+                   help="comma list of test-time polishes to score (none, photometric; each a method), or 'card' = "
+                        "what each model's card recommends (none for a checkpoint path)")
     p.add_argument("--per-photo", type=int, default=3, help="homography pairs per held-out photo")
     p.add_argument("--synthetic-num", type=int, default=16, help="held-out synthetic frames")
     p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
@@ -445,11 +449,14 @@ def main(argv=None) -> int:
     for i, model in enumerate(m for m in args.models.split(",") if m):
         passes = [None] if args.refine == "card" else [int(v) for v in args.refine.split(",") if v]
         symmetries = [None] if args.symmetry == "card" else [v for v in args.symmetry.split(",") if v]
+        polishes = [None] if args.polish == "card" else [v for v in args.polish.split(",") if v]
         for size in [s for s in args.sizes.split(",") if s]:
             ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
-            for k, (refine, symmetry) in enumerate((r, y) for r in passes for y in symmetries):
+            variants = [(r, y, q) for r in passes for y in symmetries for q in polishes]
+            for k, (refine, symmetry, polish) in enumerate(variants):
                 pred = inference.load_predictor(model, working_size=ws, refine=refine, refine_option="--refine",
-                                                symmetry=symmetry, symmetry_option="--symmetry")
+                                                symmetry=symmetry, symmetry_option="--symmetry", polish=polish,
+                                                polish_option="--polish")
                 label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
                 if size == "trained":
                     label += f" ({pred.height}x{pred.width})"
@@ -457,6 +464,8 @@ def main(argv=None) -> int:
                     label += f", refine {pred.refine}"
                 if pred.symmetry != "none":
                     label += f", {pred.symmetry}"
+                if pred.polish != "none":
+                    label += f", {pred.polish} polish"
                 methods[label] = pred
                 if i == 0 and k == 0:
                     card_labels[size] = label
@@ -477,10 +486,10 @@ def main(argv=None) -> int:
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
                         "opencv": results[check][opencv]} for check in checks}
         with open(args.card, "w") as f:
-            first = methods[next(iter(card_labels.values()))]  # the first --refine and --symmetry values' numbers
+            first = methods[next(iter(card_labels.values()))]  # the first --refine, --symmetry, --polish values' numbers
             json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}",
                        "default_working_size": pick_working_size(card), "default_refine": first.refine,
-                       "default_symmetry": first.symmetry}, f, indent=1)
+                       "default_symmetry": first.symmetry, "default_polish": first.polish}, f, indent=1)
     return 0
 
 

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+from bridge_jax import zoo
 from tests.train_helpers import REPO
 
 
@@ -35,6 +36,13 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
     # The validation numbers are real EPEs against a positive zero-motion baseline, not placeholders.
     assert summary["zero_flow_epe"] > 0.5 and summary["zero_disp_epe"] > 0.5
     assert 0.2 < summary["val_flow_epe_vs_zero"] < 5.0
+    # step 4 evaluates the model as the shipped demo answers by default, and its numbers are the tables'
+    assert (summary["eval_refine"], summary["eval_polish"]) == (zoo.default_refine("demo"), zoo.default_polish("demo"))
+    scored = json.loads((wd / "eval" / "results.json").read_text())
+    assert (scored["refine"], scored["polish"]) == (summary["eval_refine"], summary["eval_polish"])
+    assert summary["eval_flow_epe"] == scored["methods"]["model"]["flow"]["per_image_mean"]["epe_all"]
+    assert abs(summary["eval_flow_epe_vs_zero"] * summary["zero_flow_epe"] - summary["eval_flow_epe"]) < 1e-9
+    assert "As `--checkpoint demo` answers by default" in r.stdout
     assert (wd / "eval" / "results.md").is_file() and os.listdir(wd / "eval" / "pictures")
     results = (wd / "eval" / "results.md").read_text()
     assert "zero" in results.lower() and "sgbm" in results.lower()

@@ -102,14 +102,18 @@ def test_long_card_says_how_it_was_trained_and_what_it_measured(capsys):
 
 def test_shipped_descriptions_name_their_cards_defaults():
     """`bridge-zoo list` says how each shipped model runs by default: its card's working size, refinement
-    passes and symmetry averaging (a description left behind when a card changed was caught here)."""
+    passes, symmetry averaging and polish (a description left behind when a card changed was caught here)."""
     words = {1: "one"}
     for name in ("demo", "long"):
         meta, text = zoo.info(name), zoo.entry(name).description
-        assert f"by default at {'--working-size ' if meta['default_working_size'] == 'native' else ''}" \
-               f"{meta['default_working_size']} with {words[meta['default_refine']]} --refine pass" in text, name
+        size = {"native": "--working-size native",
+                "trained": f"its trained {meta['height']}x{meta['width']}"}.get(meta["default_working_size"],
+                                                                                meta["default_working_size"])
+        assert f"by default at {size} with {words[meta['default_refine']]} --refine pass" in text, name
         symmetry = meta.get("default_symmetry", "none")
         assert (f"--symmetry {symmetry}" in text) == (symmetry != "none"), name
+        polish = meta.get("default_polish", "none")
+        assert (f"--polish {polish}" in text) == (polish != "none"), name
 
 
 def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
@@ -149,7 +153,7 @@ def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
     """The shipped model, through the one predictor, on the trainer's held-out synthetic frames: flow and
     disparity well below zero motion, and the numbers recorded when it was built are reproduced."""
-    predictor = inference.load_predictor("demo", working_size="trained", refine=0)  # as the trainer validates
+    predictor = inference.load_predictor("demo", working_size="trained", refine=0, polish="none")  # as trained
     assert (predictor.height, predictor.width) == (128, 256)  # the second phase's size
     run = setup.parse(demo_config.get_config("finish"), devices=jax.devices()[:1])
     res, _ = train.validate(predictor, predictor.params, train.validation_frames(run), 4, picture=False)

@@ -25,7 +25,7 @@ also appended to `--json OUT` (JSON lines; written to a temporary name and renam
 measurement in a fresh subprocess so that each peak RSS is that measurement's own.
 
 Time to a first answer (`bridge_jax.bench.first`): `first_prediction` times a fresh `python -m bridge_jax.predict`
-on one 512x256 photo pair (`--checkpoint`, default demo; `--working-size`, `--symmetry` passed through),
+on one 512x256 photo pair (`--checkpoint`, default demo; `--working-size`, `--symmetry`, `--polish` passed through),
 `first_step` a fresh `python -m bridge_jax.train` (default --config=demo at 128x256; `--height`, `--width`,
 `--cycles`, `--dtype`, `--set` passed through as `--config.` options) for 2 steps, also reading `first_step_s` from
 its status.json.
@@ -148,6 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="first_prediction: bridge_jax.predict's --working-size (default: the model's own choice)")
     p.add_argument("--symmetry", default=None, choices=inference.SYMMETRY_MODES,
                    help="first_prediction: bridge_jax.predict's --symmetry (default: the model's own choice)")
+    p.add_argument("--polish", default=None, choices=inference.POLISH_MODES,
+                   help="first_prediction: bridge_jax.predict's --polish (default: the model's own choice)")
     return p
 
 

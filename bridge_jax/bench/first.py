@@ -147,11 +147,11 @@ def write_photo_pair(folder: str, height: int = PAIR_SIZE[0], width: int = PAIR_
 
 
 def predict_command(a: str, b: str, out: str, checkpoint: str, working_size: str | None = None,
-                    symmetry: str | None = None) -> list[str]:
+                    symmetry: str | None = None, polish: str | None = None) -> list[str]:
     cmd = [sys.executable, "-m", "bridge_jax.predict", "--checkpoint", checkpoint, "--pair-kind", "flow", a, b,
            "--out", out]
     return (cmd + (["--working-size", working_size] if working_size else [])
-            + (["--symmetry", symmetry] if symmetry else []))
+            + (["--symmetry", symmetry] if symmetry else []) + (["--polish", polish] if polish else []))
 
 
 def measure_first_prediction(args) -> dict:
@@ -159,12 +159,14 @@ def measure_first_prediction(args) -> dict:
     checkpoint = args.checkpoint
     with tempfile.TemporaryDirectory(prefix="bridge_bench_pair_") as tmp:
         a, b = write_photo_pair(tmp)
-        rec = time_cold_warm(lambda out: predict_command(a, b, out, checkpoint, args.working_size, args.symmetry),
+        rec = time_cold_warm(lambda out: predict_command(a, b, out, checkpoint, args.working_size, args.symmetry,
+                                                         args.polish),
                              repeats=int(args.repeats), label="first_prediction", off=True)
-    size, symmetry = args.working_size or "default", args.symmetry or "default"
-    variant = f"{checkpoint} working size {size}" + (f" symmetry {symmetry}" if args.symmetry else "")
-    return dict(what="first_prediction", variant=variant, checkpoint=checkpoint,
-                working_size=size, symmetry=symmetry, height=PAIR_SIZE[0], width=PAIR_SIZE[1], pair_kind="flow",
+    size, symmetry, polish = args.working_size or "default", args.symmetry or "default", args.polish or "default"
+    variant = (f"{checkpoint} working size {size}" + (f" symmetry {symmetry}" if args.symmetry else "")
+               + (f" polish {polish}" if args.polish else ""))
+    return dict(what="first_prediction", variant=variant, checkpoint=checkpoint, working_size=size,
+                symmetry=symmetry, polish=polish, height=PAIR_SIZE[0], width=PAIR_SIZE[1], pair_kind="flow",
                 repeats=int(args.repeats), **rec)
 
 

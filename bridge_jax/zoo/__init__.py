@@ -63,14 +63,15 @@ class Entry:
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` on the built-in synthetic "
                   "stereo video (the `demo` config: 1,750 steps at 64x128, then `demo:finish`: 300 steps at "
-                  "128x256); a starting point, not a KITTI model; by default at 192x384 with one --refine pass"),
+                  "128x256); a starting point, not a KITTI model; by default at its trained 128x256 with one --refine pass "
+                  "and --polish photometric"),
     "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
                   "at 128x256, then 256x512, on the synthetic "
                   "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
                   "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
                   "(config `demo:long,real,selfsup,motion,census,hires`, five stages: `bridge-zoo show long`); for "
-                  "your own images; by default at --working-size native with one --refine pass and --symmetry "
-                  "flips"),
+                  "your own images; by default at --working-size native with one --refine pass, --symmetry "
+                  "flips and --polish photometric"),
     **{f"upstream_ver_{v}": Entry(
         f"upstream_ver_{v}", "local",
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "
@@ -237,6 +238,13 @@ def default_symmetry(spec: str | os.PathLike) -> str:
     return "none" if meta is None else str(meta.get("default_symmetry", "none"))
 
 
+def default_polish(spec: str | os.PathLike) -> str:
+    """The test-time polish a shipped model's card recommends (`bridge_jax.polish`; chosen by its real-image
+    checks), or "none" (no card entry, or not a shipped model)."""
+    meta = _shipped_info(spec)
+    return "none" if meta is None else str(meta.get("default_polish", "none"))
+
+
 def resolve_path(spec: str | os.PathLike) -> str:
     """A registry name of a local entry → its folder; a path → itself; a shipped name → ValueError (it has no
     folder: use `load_params`)."""
@@ -381,6 +389,9 @@ def card_lines(name: str) -> list[str]:
     if meta.get("default_symmetry", "none") != "none":
         lines.append(f"  default symmetry averaging: {meta['default_symmetry']} (chosen by its real-image checks, "
                      "whose numbers below are with it; --symmetry overrides it)")
+    if meta.get("default_polish", "none") != "none":
+        lines.append(f"  default polish: {meta['default_polish']} (chosen by its real-image checks, whose numbers "
+                     "below are with it; --polish overrides it)")
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
             lines.append(f"  {check} @ {size}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))

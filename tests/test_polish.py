@@ -1,0 +1,174 @@
+"""Test-time photometric polish (`bridge_jax.polish`, `Predictor(polish=)`, `--polish`): the filters against
+OpenCV, the local normalisation's invariances, Lucas-Kanade on sub-pixel translations of a smooth texture
+(flow and stereo rows), candidate selection on a hand-built bled motion boundary, and the wiring into the
+predictor, the export and the command."""
+
+import json
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bridge_jax import export, inference, models, polish, zoo
+
+H, W = 64, 96
+
+
+def test_box_and_gaussian_filters_match_opencv(rng):
+    x = rng.uniform(size=(2, 23, 31)).astype(np.float32)
+    box = np.asarray(polish.box_filter(jnp.asarray(x), 3))
+    gauss = np.asarray(polish.gaussian_filter(jnp.asarray(x), 1.5))
+    for i in range(2):
+        np.testing.assert_allclose(box[i], cv2.boxFilter(x[i], -1, (7, 7), borderType=cv2.BORDER_REFLECT_101),
+                                   atol=1e-5)
+        want = cv2.GaussianBlur(x[i], (7, 7), 1.5, borderType=cv2.BORDER_REFLECT_101)  # radius ceil(2 sigma) = 3
+        np.testing.assert_allclose(gauss[i], want, atol=1e-5)
+
+
+def test_gradients_of_a_ramp():
+    """Central differences of 3x + 2y: (3, 2) inside; at the edges (replicated) half of that."""
+    ys, xs = np.mgrid[:8, :10].astype(np.float32)
+    gx, gy = (np.asarray(g[0]) for g in polish.gradients(jnp.asarray((3 * xs + 2 * ys)[None])))
+    np.testing.assert_allclose(gx[:, 1:-1], 3.0, atol=1e-5)
+    np.testing.assert_allclose(gy[1:-1], 2.0, atol=1e-5)
+    np.testing.assert_allclose(gx[:, [0, -1]], 1.5, atol=1e-5)
+    np.testing.assert_allclose(gy[[0, -1]], 1.0, atol=1e-5)
+
+
+def test_local_normalisation_cancels_offset_and_gain(rng):
+    """An offset cancels exactly; a gain cancels exactly without the contrast floor, and nearly with it on a
+    textured image (the floor is small next to its contrast)."""
+    g = jnp.asarray(rng.uniform(0.2, 0.6, size=(1, 30, 40)).astype(np.float32))
+    n = polish.normalise_locally(g, floor=0.0)
+    np.testing.assert_allclose(polish.normalise_locally(g + 0.25, floor=0.0), n, atol=1e-4)
+    np.testing.assert_allclose(polish.normalise_locally(0.5 * g, floor=0.0), n, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(polish.normalise_locally(g + 0.25)), np.asarray(polish.normalise_locally(g)),
+                               atol=1e-4)
+
+
+def _texture(x, y):
+    """A smooth grey texture in [0, 1] (sums of sinusoids of 9-23 px periods, no direction without texture)."""
+    v = (np.sin(2 * np.pi * x / 17.0 + 0.3) + np.sin(2 * np.pi * y / 13.0 + 1.1)
+         + 0.7 * np.sin(2 * np.pi * (x + y) / 23.0) + 0.5 * np.sin(2 * np.pi * (x - 2 * y) / 9.0 + 0.5))
+    return 0.5 + v / 7.0
+
+
+def _translated_pair(u: float, v: float) -> np.ndarray:
+    """`(1, H, W, 6)` with b(x, y) = a(x - u, y - v): pixel (x, y) of a is found at (x + u, y + v) of b."""
+    ys, xs = np.mgrid[:H, :W].astype(np.float64)
+    a, b = _texture(xs, ys), _texture(xs - u, ys - v)
+    return np.concatenate([np.repeat(a[..., None], 3, -1), np.repeat(b[..., None], 3, -1)], -1)[None].astype(
+        np.float32)
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_lucas_kanade_recovers_a_sub_pixel_translation(stereo):
+    """From a zero map, a flow row finds (0.6, -0.3) and a stereo row the horizontal -1.4 (two clipped steps)
+    with its vertical component kept at exactly 0. Away from the image border the mean error is a few
+    hundredths of a pixel (bilinear resampling of the 9 px component biases the optimum by up to ~0.13 px), so
+    a wrong sign, a swapped component or a missing step would show at once."""
+    u, v = (-1.4, 0.0) if stereo else (0.6, -0.3)
+    pairs = jnp.asarray(_translated_pair(u, v))
+    keep_vertical = jnp.asarray([0.0 if stereo else 1.0])
+    out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), keep_vertical))[0]
+    err = np.abs(out[10:-10, 10:-10] - np.float32([u, v]))
+    assert err.mean() < (0.01 if stereo else 0.04) and err.max() < (0.05 if stereo else 0.15), (err.mean(), err.max())
+    if stereo:
+        assert np.all(out[..., 1] == 0.0)
+
+
+def test_flat_images_keep_the_network_map():
+    """Without texture every candidate costs the same and the normal equations have only the prior: the map
+    stays as it is (no candidate is 'clearly better', no Lucas-Kanade step lowers the error)."""
+    maps = jnp.asarray(np.random.default_rng(0).normal(size=(1, H, W, 2)).astype(np.float32))
+    out = polish.polish_maps(jnp.full((1, H, W, 6), 0.4), maps, jnp.ones(1))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(maps), atol=1e-6)
+
+
+def test_candidate_selection_repairs_a_bled_motion_boundary(rng):
+    """A square of a random texture moves by (-4, 2) over a background that moves by (3, 0), both by whole
+    pixels (bilinear warps are then exact). The map given is the true one with the square's motion bled 6 px
+    into the background; above the square, where the background stays visible in b, selection takes the
+    background's (3, 0) back from the pixels further up, exactly, and leaves the square's inside alone."""
+    size = 96
+    a = cv2.GaussianBlur(rng.uniform(size=(size, size)).astype(np.float32), (0, 0), 1.0)
+    b = np.roll(a, 3, axis=1)  # background: a(x) at b(x + 3)
+    y0, y1, x0, x1 = 40, 64, 36, 60  # the square in a
+    b[y0 + 2:y1 + 2, x0 - 4:x1 - 4] = a[y0:y1, x0:x1]  # the square: a(x, y) at b(x - 4, y + 2)
+    maps = np.broadcast_to(np.float32([3.0, 0.0]), (size, size, 2)).copy()
+    maps[y0 - 6:y1 + 6, x0 - 6:x1 + 6] = (-4.0, 2.0)  # the square's motion, bled 6 px outwards
+    mask = jnp.ones((1, 1, 1, 2))
+    norm = lambda img: polish.normalise_locally(jnp.asarray(img)[None])
+    out = np.asarray(polish.select_candidates(norm(a), norm(b), jnp.asarray(maps)[None], mask))[0]
+    np.testing.assert_array_equal(out[y0 - 6:y0 - 2, x0 + 4:x1 - 4], np.broadcast_to([3.0, 0.0], (4, 16, 2)))
+    np.testing.assert_array_equal(out[y0 + 6:y1 - 6, x0 + 6:x1 - 6], np.broadcast_to([-4.0, 2.0], (12, 12, 2)))
+    assert polish.candidate_offsets().shape == (32, 2)
+
+
+def test_unknown_polish_is_one_clear_error():
+    graphdef, params = models.init(0, "pwc_lite")
+    with pytest.raises(ValueError, match=r"polish 'sharpen': expected one of none, photometric"):
+        inference.Predictor(graphdef, params, height=H, width=128, model_cfg=models.model_config("pwc_lite"),
+                            polish="sharpen")
+
+
+PWC = {**models.model_config("pwc_lite"), "head_init": "kaiming_normal"}  # non-zero maps from a random network
+
+
+def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path):
+    """`Predictor(polish="photometric")` = `polish_maps` on the plain predictor's (refined) maps, for a flow
+    and a stereo row in one batch, one compile; the exported artifact computes the same."""
+    pwc = models.init(0, PWC)
+    pairs = rng.uniform(size=(2, 64, 128, 6)).astype(np.float32)
+    plain = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1)
+    polished = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric")
+    rows = [False, True]
+    want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
+    got = polished.run_network(pairs, rows)
+    np.testing.assert_allclose(got, np.asarray(want), atol=1e-4)
+    assert np.abs(got - plain.run_network(pairs, rows)).max() > 1e-3  # the polish changed the maps
+    assert np.all(got[1, ..., 1] == 0.0)  # the stereo row stays horizontal
+    polished.run_network(pairs, rows)
+    assert polished.trace_count == 1
+    one = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, polish="photometric")
+    loaded = export.load_exported(export.serialize_to_file(export.export_network(one, batch=1), tmp_path / "p.hlo"))
+    px, _ = loaded.call(pairs[:1])
+    np.testing.assert_allclose(px, one.run_network(pairs[:1]), rtol=1e-5, atol=1e-4)
+
+
+def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
+    for name in ("long", "demo"):
+        want = zoo.info(name).get("default_polish", "none")
+        assert zoo.default_polish(name) == want
+        assert inference.load_predictor(name).polish == want
+    assert inference.load_predictor("long", polish="none").polish == "none"
+    assert zoo.default_polish(str(tmp_path)) == "none" and zoo.default_polish("no-such-name") == "none"
+
+
+def test_predict_polish_option(tiny_checkpoint, tmp_path):
+    """`bridge-predict --polish photometric` writes the polished flow and says so in predict.json; an unknown
+    mode is one argparse error (exit 2) and writes nothing; evaluate refuses it without a checkpoint."""
+    from bridge_jax import evaluate, predict
+    base = cv2.resize(np.random.default_rng(3).integers(0, 255, (32, 72, 3), dtype=np.uint8), (288, 128),
+                      interpolation=cv2.INTER_CUBIC)
+    paths = []
+    for i, img in enumerate((base[:, :256], base[:, 8:264])):
+        paths.append(str(tmp_path / f"f{i}.png"))
+        cv2.imwrite(paths[-1], np.ascontiguousarray(img[..., ::-1]))
+    out = tmp_path / "out"
+    args = ["--checkpoint", tiny_checkpoint, *paths, "--out", str(out), "--working-size", "128x256", "--raw", "npy",
+            "--no-progress"]
+    assert predict.main(args + ["--polish", "photometric"]) == 0
+    assert json.loads((out / "predict.json").read_text())["polish"] == "photometric"
+    # the same compile mode as the command's for one pair: candidate selection is an argmin, so the rounding of
+    # another optimisation level can flip near-ties (by whole candidate values)
+    want = inference.load_predictor(tiny_checkpoint, working_size=(128, 256), polish="photometric",
+                                    compile_mode=inference.compile_mode_for("auto", 1)).predict_pair(
+        cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
+    np.testing.assert_allclose(np.load(out / "flow_npy" / "f0.npy"), want, rtol=1e-4, atol=1e-4)
+    with pytest.raises(SystemExit) as e:
+        predict.main(args[:-4] + ["--out", str(tmp_path / "bad"), "--polish", "sharpen"])
+    assert e.value.code == 2 and not (tmp_path / "bad").exists()
+    assert evaluate.main(["--dataset", "synthetic", "--data-dir", str(tmp_path), "--polish", "photometric",
+                          "--no-progress"]) == 2
