@@ -17,13 +17,16 @@ ground truth:
    between `a` and `b` warped by the map, each step at most one pixel per component, taken per pixel only
    where it lowers the windowed photometric error. Stereo rows solve for the horizontal component alone.
 
-Both work on locally normalised grey images (zero mean, unit contrast over a 15x15 window,
+Both compare locally normalised grey images (zero mean, unit contrast over a 15x15 window,
 `normalise_locally`): gain, offset and gamma differences between two cameras then cancel to first order,
-which raw brightness constancy would read as motion.
+which raw brightness constancy would read as motion. `b` is normalised *after* it is warped into `a`'s frame
+(`warped_normalised`), so that both windows cover the same piece of the scene: normalised in its own frame,
+`b`'s windows near its border are reflected where `a`'s are not, which biased every pixel whose match lies
+near that border (on a hand-built translation, 0.21 px against 0.06 px this way).
 
 Measured (experiments/results/real_images.md, 2026-12-04): every real-image number of both shipped models
-improves; `long`'s photo flow 1.74 -> 1.51 px (DIS 1.21) and Motorcycle D1 14.6 -> 13.1 %, `demo`'s Motorcycle
-D1 34.1 -> 21.1 % and photo flow 4.25 -> 2.82 px. The numbers are then the network's answer corrected by a local
+improves; `long`'s photo flow 1.74 -> 1.46 px (DIS 1.21) and Motorcycle D1 14.6 -> 12.6 %, `demo`'s Motorcycle
+D1 34.1 -> 20.3 % and photo flow 4.25 -> 2.72 px. The numbers are then the network's answer corrected by a local
 search, no longer the network's alone; `polish="none"` gives those.
 """
 from __future__ import annotations
@@ -110,10 +113,15 @@ def _warp_grey(image: jax.Array, maps: jax.Array) -> jax.Array:
     return geometry.warp(image[..., None], maps)[..., 0]
 
 
+def warped_normalised(grey_b: jax.Array, maps: jax.Array) -> jax.Array:
+    """`(N, H, W)` grey image `b` warped into `a`'s frame by `maps`, then normalised there (`normalise_locally`)."""
+    return normalise_locally(_warp_grey(grey_b, maps))
+
+
 # ------------------------------------------------------------------------------ candidate selection
-def matching_cost(norm_a: jax.Array, norm_b: jax.Array, maps: jax.Array, radius: int = COST_RADIUS) -> jax.Array:
-    """Windowed mean |a - warp(b, map)| of normalised grey images `(N, H, W)`; `maps (N, H, W, 2)`."""
-    return box_filter(jnp.abs(_warp_grey(norm_b, maps) - norm_a), radius)
+def matching_cost(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, radius: int = COST_RADIUS) -> jax.Array:
+    """Windowed mean |norm(a) - norm(warp(b, map))| (`(N, H, W)`: `a` normalised, `b` grey; `maps (N, H, W, 2)`)."""
+    return box_filter(jnp.abs(warped_normalised(grey_b, maps) - norm_a), radius)
 
 
 def _shifted(maps: jax.Array, dx: jax.Array, dy: jax.Array) -> jax.Array:
@@ -130,25 +138,26 @@ def candidate_offsets(distances=CANDIDATE_DISTANCES) -> np.ndarray:
     return np.array([(ux * d, uy * d) for d in distances for ux, uy in dirs], np.int32)
 
 
-def select_candidates(norm_a: jax.Array, norm_b: jax.Array, maps: jax.Array, mask: jax.Array, *,
+def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mask: jax.Array, *,
                       distances=CANDIDATE_DISTANCES, radius: int = COST_RADIUS,
                       ratio: float = ACCEPT_RATIO, margin: float = ACCEPT_MARGIN) -> jax.Array:
     """Each pixel's map value replaced by the best of its neighbours' (`candidate_offsets`) where that one
     matches clearly better (cost < `ratio` x its own - `margin`; then the cheapest wins).
 
     Args:
-      norm_a, norm_b: `(N, H, W)` locally normalised grey images (`normalise_locally`).
+      norm_a: `(N, H, W)` grey image `a`, locally normalised (`normalise_locally`).
+      grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
       maps: `(N, H, W, 2)` pixel maps a -> b.
       mask: `(N, 1, 1, 2)` 1 for the components a row keeps (stereo rows: (1, 0)).
     Returns:
       `(N, H, W, 2)` maps.
     """
-    own = matching_cost(norm_a, norm_b, maps, radius)
+    own = matching_cost(norm_a, grey_b, maps, radius)
 
     def try_one(carry, offset):
         best_cost, best = carry
         cand = _shifted(maps, offset[0], offset[1]) * mask
-        cost = matching_cost(norm_a, norm_b, cand, radius)
+        cost = matching_cost(norm_a, grey_b, cand, radius)
         better = cost < best_cost
         return (jnp.where(better, cost, best_cost), jnp.where(better[..., None], cand, best)), None
 
@@ -157,17 +166,18 @@ def select_candidates(norm_a: jax.Array, norm_b: jax.Array, maps: jax.Array, mas
 
 
 # ----------------------------------------------------------------------------------- Lucas-Kanade
-def lucas_kanade(norm_a: jax.Array, norm_b: jax.Array, maps: jax.Array, keep_vertical: jax.Array, *,
+def lucas_kanade(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, keep_vertical: jax.Array, *,
                  steps: int = LK_STEPS, sigma: float = LK_SIGMA, prior: float = LK_PRIOR) -> jax.Array:
     """Windowed Lucas-Kanade steps on the residual of `maps`.
 
-    With I_t = warp(b, D) - a and the mean of both images' gradients g = (g_x, g_y), the step d solves
+    With I_t = norm(warp(b, D)) - norm(a) and the mean of both images' gradients g = (g_x, g_y), the step d solves
     (sum w g g^T + prior I) d = -sum w g I_t over a Gaussian window w (stereo rows: d_x = -sum w g_x I_t /
     (sum w g_x^2 + prior), d_y = 0). Each component is clipped to [-1, 1] (the linearisation holds about a
     pixel) and a pixel takes its step only if the windowed squared residual goes down.
 
     Args:
-      norm_a, norm_b: `(N, H, W)` locally normalised grey images.
+      norm_a: `(N, H, W)` grey image `a`, locally normalised.
+      grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
       maps: `(N, H, W, 2)` pixel maps a -> b.
       keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows.
     Returns:
@@ -188,11 +198,11 @@ def lucas_kanade(norm_a: jax.Array, norm_b: jax.Array, maps: jax.Array, keep_ver
         du = jnp.where(flow_row, -(syy * sxt - sxy * syt) / det, -sxt / sxx)
         dv = jnp.where(flow_row, -(sxx * syt - sxy * sxt) / det, 0.0)
         new = d + jnp.clip(jnp.stack([du, dv], -1), -1.0, 1.0)
-        new_warped = _warp_grey(norm_b, new)
+        new_warped = warped_normalised(grey_b, new)
         better = win((new_warped - norm_a) ** 2) < win(it * it)
         return jnp.where(better[..., None], new, d), jnp.where(better, new_warped, warped)
 
-    out, _ = jax.lax.fori_loop(0, steps, step, (maps, _warp_grey(norm_b, maps)))
+    out, _ = jax.lax.fori_loop(0, steps, step, (maps, warped_normalised(grey_b, maps)))
     return out
 
 
@@ -209,7 +219,7 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array) -> 
     pairs, maps = pairs.astype(jnp.float32), maps.astype(jnp.float32)
     keep_vertical = keep_vertical.astype(jnp.float32)
     norm_a = normalise_locally(pairs[..., :3].mean(-1))
-    norm_b = normalise_locally(pairs[..., 3:].mean(-1))
+    grey_b = pairs[..., 3:].mean(-1)
     mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
-    maps = select_candidates(norm_a, norm_b, maps * mask, mask)
-    return lucas_kanade(norm_a, norm_b, maps, keep_vertical)
+    maps = select_candidates(norm_a, grey_b, maps * mask, mask)
+    return lucas_kanade(norm_a, grey_b, maps, keep_vertical)
