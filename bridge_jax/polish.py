@@ -11,8 +11,8 @@ ground truth:
    16 and 24 pixels away in the 8 directions, scores each by the mean absolute difference of the
    locally normalised images over a (2r+1)^2 window (`matching_cost`), and takes the best candidate only if
    it costs at most `ratio` times its own value's cost, less a small margin (so that flat, textureless or
-   occluded regions, where every candidate scores alike, keep the network's value). One candidate round, no iteration: a PatchMatch
-   propagation step seeded by the network.
+   occluded regions, where every candidate scores alike, keep the network's value). One candidate round, no
+   iteration: a PatchMatch propagation step seeded by the network.
 2. **Sub-pixel noise** (`lucas_kanade`). A few Gauss-Newton steps of windowed Lucas-Kanade on the residual
    between `a` and `b` warped by the map, each step at most one pixel per component, taken per pixel only
    where it lowers the windowed photometric error. Stereo rows solve for the horizontal component alone.
