@@ -155,6 +155,8 @@ def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
         assert zoo.default_polish(name) == want
         assert inference.load_predictor(name).polish == want
     assert inference.load_predictor("long", polish="none").polish == "none"
+    for name in ("long", "demo"):  # `bridge-zoo show` says so, for both shipped cards (both recommend it)
+        assert any(line.startswith("  default polish: photometric") for line in zoo.card_lines(name)), name
     assert zoo.default_polish(str(tmp_path)) == "none" and zoo.default_polish("no-such-name") == "none"
 
 
