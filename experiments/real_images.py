@@ -27,11 +27,11 @@ next to OpenCV on the same inputs at full resolution:
 Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
 panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
 first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`; at the first
-`--refine`, `--symmetry` and `--polish` values, which the card then recommends). `--refine 0,2` scores each model without
-and with two test-time refinement passes (`inference.refine_maps`), `--symmetry none,flips` without and with
-test-time symmetry averaging (`inference.symmetric_estimate`), `--polish none,photometric` without and with
-the test-time photometric polish (`bridge_jax.polish`); the default of all three, `card`, runs each model as
-its card says.
+`--refine`, `--symmetry` and `--polish` values, which the card then recommends). `--refine 0,2` scores each
+model without and with two test-time refinement passes (`inference.refine_maps`), `--symmetry none,flips`
+without and with test-time symmetry averaging (`inference.symmetric_estimate`), `--polish none,photometric`
+without and with the test-time photometric polish (`bridge_jax.polish`); the default of all three, `card`, runs
+each model as its card says.
 """
 from __future__ import annotations
 
@@ -486,7 +486,7 @@ def main(argv=None) -> int:
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
                         "opencv": results[check][opencv]} for check in checks}
         with open(args.card, "w") as f:
-            first = methods[next(iter(card_labels.values()))]  # the first --refine, --symmetry, --polish values' numbers
+            first = methods[next(iter(card_labels.values()))]  # numbers at the first --refine/--symmetry/--polish
             json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}",
                        "default_working_size": pick_working_size(card), "default_refine": first.refine,
                        "default_symmetry": first.symmetry, "default_polish": first.polish}, f, indent=1)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import export, inference, models, polish, zoo
+from tests.test_symmetry import predict_pair_command
 
 H, W = 64, 96
 
@@ -160,19 +161,11 @@ def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
     assert zoo.default_polish(str(tmp_path)) == "none" and zoo.default_polish("no-such-name") == "none"
 
 
-def test_predict_polish_option(tiny_checkpoint, tmp_path):
+def test_predict_polish_option(tiny_checkpoint, tmp_path, capsys):
     """`bridge-predict --polish photometric` writes the polished flow and says so in predict.json; an unknown
     mode is one argparse error (exit 2) and writes nothing; evaluate refuses it without a checkpoint."""
     from bridge_jax import evaluate, predict
-    base = cv2.resize(np.random.default_rng(3).integers(0, 255, (32, 72, 3), dtype=np.uint8), (288, 128),
-                      interpolation=cv2.INTER_CUBIC)
-    paths = []
-    for i, img in enumerate((base[:, :256], base[:, 8:264])):
-        paths.append(str(tmp_path / f"f{i}.png"))
-        cv2.imwrite(paths[-1], np.ascontiguousarray(img[..., ::-1]))
-    out = tmp_path / "out"
-    args = ["--checkpoint", tiny_checkpoint, *paths, "--out", str(out), "--working-size", "128x256", "--raw", "npy",
-            "--no-progress"]
+    paths, out, args = predict_pair_command(tiny_checkpoint, tmp_path)
     assert predict.main(args + ["--polish", "photometric"]) == 0
     assert json.loads((out / "predict.json").read_text())["polish"] == "photometric"
     # the same compile mode as the command's for one pair: candidate selection is an argmin, so the rounding of
@@ -182,7 +175,8 @@ def test_predict_polish_option(tiny_checkpoint, tmp_path):
         cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
     np.testing.assert_allclose(np.load(out / "flow_npy" / "f0.npy"), want, rtol=1e-4, atol=1e-4)
     with pytest.raises(SystemExit) as e:
-        predict.main(args[:-4] + ["--out", str(tmp_path / "bad"), "--polish", "sharpen"])
+        predict.main([str(tmp_path / "bad") if a == str(out) else a for a in args] + ["--polish", "sharpen"])
     assert e.value.code == 2 and not (tmp_path / "bad").exists()
+    assert "--polish: invalid choice: 'sharpen'" in capsys.readouterr().err
     assert evaluate.main(["--dataset", "synthetic", "--data-dir", str(tmp_path), "--polish", "photometric",
                           "--no-progress"]) == 2

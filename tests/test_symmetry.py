@@ -125,12 +125,12 @@ def test_default_symmetry_comes_from_a_shipped_card_only(tmp_path):
     assert zoo.default_symmetry(str(tmp_path)) == "none" and zoo.default_symmetry("no-such-name") == "none"
 
 
-def test_predict_symmetry_option(tiny_checkpoint, tmp_path):
-    """`bridge-predict --symmetry flips` writes the symmetric predictor's flow and says so in predict.json; an
-    unknown mode is one argparse error (exit 2) and writes nothing."""
+def predict_pair_command(checkpoint: str, tmp_path):
+    """Two 128x256 frames of a smooth random texture, 8 px apart, written to `tmp_path` as f0.png / f1.png, and
+    the `bridge-predict` arguments that write their flow as .npy into `tmp_path/out` at 128x256. Returns
+    (paths, out, args)."""
     import cv2
 
-    from bridge_jax import predict
     rng = np.random.default_rng(3)
     base = cv2.resize(rng.integers(0, 255, (32, 72, 3), dtype=np.uint8), (288, 128), interpolation=cv2.INTER_CUBIC)
     paths = []
@@ -138,13 +138,24 @@ def test_predict_symmetry_option(tiny_checkpoint, tmp_path):
         paths.append(str(tmp_path / f"f{i}.png"))
         cv2.imwrite(paths[-1], np.ascontiguousarray(img[..., ::-1]))
     out = tmp_path / "out"
-    args = ["--checkpoint", tiny_checkpoint, *paths, "--out", str(out), "--working-size", "128x256", "--raw", "npy",
+    args = ["--checkpoint", checkpoint, *paths, "--out", str(out), "--working-size", "128x256", "--raw", "npy",
             "--no-progress"]
+    return paths, out, args
+
+
+def test_predict_symmetry_option(tiny_checkpoint, tmp_path, capsys):
+    """`bridge-predict --symmetry flips` writes the symmetric predictor's flow and says so in predict.json; an
+    unknown mode is one argparse error (exit 2) and writes nothing."""
+    import cv2
+
+    from bridge_jax import predict
+    paths, out, args = predict_pair_command(tiny_checkpoint, tmp_path)
     assert predict.main(args + ["--symmetry", "flips"]) == 0
     assert json.loads((out / "predict.json").read_text())["symmetry"] == "flips"
     want = inference.load_predictor(tiny_checkpoint, working_size=(128, 256), symmetry="flips").predict_pair(
         cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
     np.testing.assert_allclose(np.load(out / "flow_npy" / "f0.npy"), want, rtol=1e-4, atol=1e-4)
     with pytest.raises(SystemExit) as e:
-        predict.main(args[:-4] + ["--out", str(tmp_path / "bad"), "--symmetry", "mirror"])
+        predict.main([str(tmp_path / "bad") if a == str(out) else a for a in args] + ["--symmetry", "mirror"])
     assert e.value.code == 2 and not (tmp_path / "bad").exists()
+    assert "--symmetry: invalid choice: 'mirror'" in capsys.readouterr().err

@@ -63,8 +63,8 @@ class Entry:
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` on the built-in synthetic "
                   "stereo video (the `demo` config: 1,750 steps at 64x128, then `demo:finish`: 300 steps at "
-                  "128x256); a starting point, not a KITTI model; by default at its trained 128x256 with one --refine pass "
-                  "and --polish photometric"),
+                  "128x256); a starting point, not a KITTI model; by default at its trained 128x256 with one "
+                  "--refine pass and --polish photometric"),
     "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
                   "at 128x256, then 256x512, on the synthetic "
                   "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
@@ -224,25 +224,28 @@ def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, i
     return None if value is None else cli.parse_working_size(value)
 
 
+def _card_value(spec: str | os.PathLike, key: str, fallback: Any) -> Any:
+    """A shipped model's card entry `key`, or `fallback` (no such entry, or not a shipped model)."""
+    meta = _shipped_info(spec)
+    return fallback if meta is None else meta.get(key, fallback)
+
+
 def default_refine(spec: str | os.PathLike) -> int:
     """The test-time refinement passes a shipped model's card recommends (`inference.refine_maps`; chosen by
     its real-image checks), or 0 (no card entry, or not a shipped model)."""
-    meta = _shipped_info(spec)
-    return 0 if meta is None else int(meta.get("default_refine", 0))
+    return int(_card_value(spec, "default_refine", 0))
 
 
 def default_symmetry(spec: str | os.PathLike) -> str:
     """The test-time symmetry averaging a shipped model's card recommends (`inference.symmetric_estimate`;
     chosen by its real-image checks), or "none" (no card entry, or not a shipped model)."""
-    meta = _shipped_info(spec)
-    return "none" if meta is None else str(meta.get("default_symmetry", "none"))
+    return str(_card_value(spec, "default_symmetry", "none"))
 
 
 def default_polish(spec: str | os.PathLike) -> str:
     """The test-time polish a shipped model's card recommends (`bridge_jax.polish`; chosen by its real-image
     checks), or "none" (no card entry, or not a shipped model)."""
-    meta = _shipped_info(spec)
-    return "none" if meta is None else str(meta.get("default_polish", "none"))
+    return str(_card_value(spec, "default_polish", "none"))
 
 
 def resolve_path(spec: str | os.PathLike) -> str:
