@@ -117,7 +117,8 @@ def add_polish_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> 
     parser.add_argument("--polish", default=None, choices=tuple(modes),
                         help="test-time polish of the final maps against the images themselves: 'photometric' "
                              "lets each pixel take a neighbour's value where that matches clearly better (sharper "
-                             "motion boundaries), then takes a few Lucas-Kanade steps (sub-pixel); 'none' = the "
+                             "motion boundaries), then a variational refinement (sub-pixel; textureless regions and "
+                             "the image border take their neighbours' motion), twice; 'none' = the "
                              "network's maps as they are; default: what a shipped model's card recommends, else none")
 
 

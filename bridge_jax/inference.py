@@ -65,7 +65,8 @@ COMPILE_MODES = ("auto", "fast", "full")
 """How the network is compiled. "full": XLA's default optimisation. "fast": the LLVM back end at optimisation
 level 0 (`xla_backend_optimization_level=0`). On a 2-core AVX-512 VM (2026-12-02) that cut pwc_lite's compile
 from 8.3 to 3.7 s at 64x128 and from 19.9 to 6.3 s at 256x512 while each call got 12-26 % slower (20.5 -> 22.9 ms,
-294 -> 371 ms): a few pairs answer sooner "fast", long runs sooner "full". "auto": `compile_mode_for`."""
+294 -> 371 ms): a few pairs answer sooner "fast", long runs sooner "full". "auto": `compile_mode_for`. The
+polish is compiled at full optimisation whatever the mode (`Predictor._polish_program`)."""
 MAX_REFINE = 8
 """The most refinement passes `Predictor(refine=)` accepts (each costs one more network call per pair)."""
 SYMMETRY_MODES = ("none", "flips", "dihedral")
@@ -361,6 +362,10 @@ def symmetric_estimate(estimate, pairs: jax.Array, symmetry: str,
     return total / count[:, None, None, None]
 
 
+_POLISH_JIT = jax.jit(polish_maps)
+"""The polish as its own program (`Predictor._polish_program`)."""
+
+
 def predicted_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], keep_vertical: jax.Array,
                    refine: int, symmetry: str, polish: str = "none") -> jax.Array:
     """What a predictor answers for `pairs`: the network's scale-0 pixel map (averaged over the `symmetry`
@@ -468,10 +473,31 @@ class Predictor:
 
     def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
         """The compiled network on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps
-        (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`)."""
-        args = (self.params, pairs, self.net.static_rows(is_stereo), _keep_vertical(is_stereo), self.refine,
-                self.symmetry, self.polish)
-        return self._program(args)(*args)
+        (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`);
+        with `polish`, polished (`polish.polish_maps`) by a program of its own (`_polish_program`)."""
+        keep_vertical = _keep_vertical(is_stereo)
+        args = (self.params, pairs, self.net.static_rows(is_stereo), keep_vertical, self.refine, self.symmetry,
+                "none")
+        maps = self._program(args)(*args)
+        if self.polish == "none":
+            return maps
+        polish_args = (pairs, maps, keep_vertical)
+        return self._polish_program(polish_args)(*polish_args)
+
+    def _polish_program(self, args):
+        """`polish_maps` jitted at XLA's full optimisation whatever `compile_mode` (with `executable_cache`,
+        compiled once and kept there). The polish is all elementwise loops, which XLA:CPU's optimisation level 0
+        leaves unvectorised: in one "fast" program with the network it took 2.44 s per 256x512 pair against
+        0.63 s (2026-12-04, 2-core AVX-512 VM), while the network's convolutions (library calls) do not care."""
+        if self.executable_cache is None or self.mesh is not None:
+            return _POLISH_JIT
+        pairs = args[0]
+        key = ("polish", tuple(pairs.shape), str(pairs.dtype), self.executable_cache)
+        fn = self._kept.get(key)
+        if fn is None:
+            fn = self._kept[key] = executable_cache.cached_compile(
+                _POLISH_JIT, args, config={"program": "polish"}, folder=self.executable_cache)
+        return fn
 
     def _program(self, args):
         """The jitted network, or with `executable_cache` the compiled network for these arguments, loaded
@@ -480,7 +506,7 @@ class Predictor:
             return self._net
         pairs, rows = args[1], args[2]
         key = (self.compile_mode, tuple(pairs.shape), str(pairs.dtype), rows, self.refine, self.symmetry,
-               self.polish, self.executable_cache)
+               self.executable_cache)
         fn = self._kept.get(key)
         if fn is None:
             # What the network function closes over besides its arguments: the model, the compute dtype, one or
@@ -493,11 +519,12 @@ class Predictor:
         return fn
 
     def lower(self, batch: int, is_stereo: bool = False):
-        """`jax.stages.Lowered` of the network for `batch` pairs (compile time, cost and memory analysis)."""
+        """`jax.stages.Lowered` of the network for `batch` pairs (compile time, cost and memory analysis), with
+        its refinement passes and symmetry averaging and without the polish (a program of its own)."""
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
         rows = (is_stereo,) * batch
         return self._net.lower(self.params, spec, self.net.static_rows(rows), _keep_vertical(rows), self.refine,
-                               self.symmetry, self.polish)
+                               self.symmetry, "none")
 
     def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
         """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.

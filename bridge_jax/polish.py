@@ -1,9 +1,8 @@
-"""Test-time photometric polish: the network's map improved locally at the working resolution.
+"""Test-time photometric polish: the network's map improved at the working resolution.
 
 The network answers at a quarter of its working size, and its maps come up to full size by bilinear
-interpolation, smoothed by the training's smoothness prior. Two errors follow that a per-pixel look at the
-images themselves can correct, with the same photometric criterion the network was trained on and no
-ground truth:
+interpolation, smoothed by the training's smoothness prior. Two errors follow that a look at the images
+themselves can correct, with the same photometric criterion the network was trained on and no ground truth:
 
 1. **Bled motion boundaries** (`select_candidates`). Around an object that moves differently from its
    background the network's map blends the two motions over 10-30 pixels. The right motion is usually the
@@ -11,23 +10,26 @@ ground truth:
    16 and 24 pixels away in the 8 directions, scores each by the mean absolute difference of the
    locally normalised images over a (2r+1)^2 window (`matching_cost`), and takes the best candidate only if
    it costs at most `ratio` times its own value's cost, less a small margin (so that flat, textureless or
-   occluded regions, where every candidate scores alike, keep the network's value). One candidate round, no
-   iteration: a PatchMatch propagation step seeded by the network.
-2. **Sub-pixel noise** (`lucas_kanade`). A few Gauss-Newton steps of windowed Lucas-Kanade on the residual
-   between `a` and `b` warped by the map, each step at most one pixel per component, taken per pixel only
-   where it lowers the windowed photometric error. Stereo rows solve for the horizontal component alone.
+   occluded regions, where every candidate scores alike, keep the network's value). A PatchMatch propagation
+   step seeded by the network.
+2. **Sub-pixel noise, textureless regions, the image border** (`variational_refinement`). A combined
+   local-global energy: windowed Lucas-Kanade data terms where the images have texture, an edge-aware robust
+   smoothness term everywhere, minimised by a few warps of red-black SOR. Where the images say little (sky,
+   walls, pixels whose match leaves `b`) the map takes its neighbours' motion; a motion boundary on an image
+   edge stays sharp.
 
-Both compare locally normalised grey images (zero mean, unit contrast over a 15x15 window,
-`normalise_locally`): gain, offset and gamma differences between two cameras then cancel to first order,
-which raw brightness constancy would read as motion. `b` is normalised *after* it is warped into `a`'s frame
-(`warped_normalised`), so that both windows cover the same piece of the scene: normalised in its own frame,
-`b`'s windows near its border are reflected where `a`'s are not, which biased every pixel whose match lies
-near that border (on a hand-built translation, 0.21 px against 0.06 px this way).
+`polish_maps` runs both twice (`POLISH_ROUNDS`): the second round's candidates come from a map that the first
+made right on wider areas. Both steps compare locally normalised grey images (zero mean, unit contrast over a
+15x15 window, `normalise_locally`): gain, offset and gamma differences between two cameras then cancel to first
+order, which raw brightness constancy would read as motion. `b` is normalised *after* it is warped into `a`'s
+frame (`warped_normalised`), so that both windows cover the same piece of the scene: normalised in its own
+frame, `b`'s windows near its border are reflected where `a`'s are not, which biased every pixel whose match
+lies near that border.
 
-Measured (experiments/results/real_images.md, 2026-12-04): every real-image number of both shipped models
-improves; `long`'s photo flow 1.74 -> 1.46 px (DIS 1.21) and Motorcycle D1 14.6 -> 12.6 %, `demo`'s Motorcycle
-D1 34.1 -> 20.3 % and photo flow 4.25 -> 2.72 px. The numbers are then the network's answer corrected by a local
-search, no longer the network's alone; `polish="none"` gives those.
+Measured on `long` (experiments/results/real_images.md, 2026-12-04): photo flow 1.74 px without the polish,
+1.46 px with one round of candidate selection and three Lucas-Kanade steps (the polish before the refinement),
+0.91 px now (DIS: 1.21 px); Motorcycle D1 14.6 % -> 12.6 % -> 11.0 % (SGBM: 15.0 %). The numbers are then the network's answer corrected by a local
+photometric optimisation, no longer the network's alone; `polish="none"` gives those.
 """
 from __future__ import annotations
 
@@ -38,6 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
+
+POLISH_ROUNDS = 2
+"""Rounds of (`select_candidates`, `variational_refinement`) in `polish_maps`."""
 
 POLISH_MODES = ("none", "photometric")
 """Test-time polish of a predictor's maps: "none", or "photometric" (`polish_maps`)."""
@@ -56,13 +61,25 @@ ACCEPT_MARGIN = 1e-4
 """...and at least this much below it (normalised grey levels): on a flat image every cost is float rounding
 noise (~1e-7), and no ratio of two rounding noises means anything. A margin of 0.01 cost `long` 0.02 px on the
 photo flow check (2026-12-04): weakly textured windows cost only a few hundredths."""
-LK_STEPS = 3
-"""Gauss-Newton steps of `lucas_kanade`."""
-LK_SIGMA = 2.5
-"""Standard deviation (pixels) of `lucas_kanade`'s Gaussian window."""
-LK_PRIOR = 0.01
-"""Tikhonov term added to the 2x2 normal equations of `lucas_kanade` (normalised grey levels squared):
-keeps the step small where the window has no texture in some direction."""
+SMOOTHNESS_WEIGHT = 2.0
+"""alpha of `variational_refinement`: the weight of the smoothness term next to the windowed data term."""
+EDGE_SCALE = 0.05
+"""Grey-level difference (in [0, 1]) over which a neighbour's smoothness weight falls by e (`edge_weights`)."""
+DATA_EPS = 0.1
+"""Charbonnier epsilon of the data term (normalised grey levels): residuals much larger weigh 1/|residual|."""
+SMOOTH_EPS = 0.1
+"""Charbonnier epsilon of the smoothness term (pixels): map differences much larger weigh 1/|difference|,
+so a motion boundary the earlier steps made sharp stays sharp."""
+VARIATIONAL_SIGMA = 1.5
+"""Standard deviation (pixels) of the Gaussian window of the data term (the "local" half of the CLG energy)."""
+VARIATIONAL_WARPS = 5
+"""Outer iterations of `variational_refinement`: b re-warped, the energy re-linearised, weights recomputed."""
+SOR_SWEEPS = 20
+"""Red-black successive over-relaxation sweeps per outer iteration."""
+SOR_OMEGA = 1.9
+"""Over-relaxation factor of those sweeps (1 = Gauss-Seidel)."""
+DATA_PRIOR = 1e-3
+"""Added to the diagonal of the windowed data term: the 2x2 systems stay well posed without texture or smoothness."""
 
 
 def check_polish(polish: Any, option: str = "polish") -> str:
@@ -165,49 +182,116 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
     return best
 
 
-# ----------------------------------------------------------------------------------- Lucas-Kanade
-def lucas_kanade(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, keep_vertical: jax.Array, *,
-                 steps: int = LK_STEPS, sigma: float = LK_SIGMA, prior: float = LK_PRIOR) -> jax.Array:
-    """Windowed Lucas-Kanade steps on the residual of `maps`.
+# ----------------------------------------------------------------------------- variational refinement
+_NEIGHBOURS = ((0, 1), (1, 0), (0, -1), (-1, 0))
+"""(dy, dx) of the 4 neighbours the smoothness term couples."""
 
-    With I_t = norm(warp(b, D)) - norm(a) and the mean of both images' gradients g = (g_x, g_y), the step d solves
-    (sum w g g^T + prior I) d = -sum w g I_t over a Gaussian window w (stereo rows: d_x = -sum w g_x I_t /
-    (sum w g_x^2 + prior), d_y = 0). Each component is clipped to [-1, 1] (the linearisation holds about a
-    pixel) and a pixel takes its step only if the windowed squared residual goes down.
 
-    Args:
-      norm_a: `(N, H, W)` grey image `a`, locally normalised.
-      grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
-      maps: `(N, H, W, 2)` pixel maps a -> b.
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows.
-    Returns:
-      `(N, H, W, 2)` maps.
-    """
-    ax, ay = gradients(norm_a)
-    flow_row = (keep_vertical > 0.5)[:, None, None]
-    win = lambda x: gaussian_filter(x, sigma)
+def _neighbour(x: jax.Array, dy: int, dx: int) -> jax.Array:
+    """`(N, H, W, ...)` read at (y + dy, x + dx), edge replicated (slices, not a gather: XLA:CPU gathers are slow)."""
+    h, w = x.shape[1:3]
+    pad = [(0, 0), (max(-dy, 0), max(dy, 0)), (max(-dx, 0), max(dx, 0))] + [(0, 0)] * (x.ndim - 3)
+    y = jnp.pad(x, pad, mode="edge")
+    return y[:, max(dy, 0):max(dy, 0) + h, max(dx, 0):max(dx, 0) + w]
 
-    def step(_, carry):
-        d, warped = carry
-        it = warped - norm_a
-        bx, by = gradients(warped)
-        gx, gy = 0.5 * (ax + bx), 0.5 * (ay + by)
-        sxx, sxy, syy = win(gx * gx) + prior, win(gx * gy), win(gy * gy) + prior
-        sxt, syt = win(gx * it), win(gy * it)
-        det = sxx * syy - sxy * sxy
-        du = jnp.where(flow_row, -(syy * sxt - sxy * syt) / det, -sxt / sxx)
-        dv = jnp.where(flow_row, -(sxx * syt - sxy * sxt) / det, 0.0)
-        new = d + jnp.clip(jnp.stack([du, dv], -1), -1.0, 1.0)
-        new_warped = warped_normalised(grey_b, new)
-        better = win((new_warped - norm_a) ** 2) < win(it * it)
-        return jnp.where(better[..., None], new, d), jnp.where(better, new_warped, warped)
 
-    out, _ = jax.lax.fori_loop(0, steps, step, (maps, warped_normalised(grey_b, maps)))
+def edge_weights(grey_a: jax.Array, scale: float = EDGE_SCALE) -> list[jax.Array]:
+    """Smoothness weight of each pixel to each of its 4 `_NEIGHBOURS`, `(N, H, W)` each:
+    exp(-|a_neighbour - a| / scale) on `a` lightly smoothed (sigma 0.7 px), 0 where the neighbour is outside
+    the image. A map may change where the image changes, and is pulled together where it does not."""
+    g = gaussian_filter(grey_a, 0.7)
+    h, w = grey_a.shape[1:]
+    rows, cols = jnp.arange(h)[:, None], jnp.arange(w)[None, :]
+    out = []
+    for dy, dx in _NEIGHBOURS:
+        inside = (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w)
+        out.append(jnp.exp(-jnp.abs(_neighbour(g, dy, dx) - g) / scale) * inside)
     return out
 
 
+def variational_refinement(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, maps: jax.Array,
+                           keep_vertical: jax.Array, *, alpha: float = SMOOTHNESS_WEIGHT,
+                           warps: int = VARIATIONAL_WARPS, sweeps: int = SOR_SWEEPS,
+                           omega: float = SOR_OMEGA) -> jax.Array:
+    """Combined local-global refinement (Bruhn, Weickert and Schnorr's CLG energy) of `maps`.
+
+    Minimises over the map D, linearised about the current D0 (D = D0 + d),
+
+        sum_x  d^T J d + 2 d^T j  +  alpha sum_{x~y} c_xy psi_s(|D0_x - D0_y|) |D_x - D_y|^2,
+
+    where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`VARIATIONAL_SIGMA`) data terms
+    of Lucas-Kanade on the locally normalised images, rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly
+    (occlusions), c_xy are the `edge_weights` of `a`, and psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust
+    smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
+    up, so its value comes from its neighbours. Each of `warps` outer iterations re-warps `b`, recomputes the
+    weights and runs `sweeps` red-black SOR sweeps on the 2x2 (stereo rows: 1x1) per-pixel systems.
+
+    Where the earlier steps leave noise the smoothness term averages it with the neighbours' values, weighted by
+    how well each is determined; textureless regions (sky, walls) and the image border take their neighbours'
+    motion instead of keeping the network's guess. Robust weights in both terms keep occlusions from pulling
+    their neighbours and motion boundaries from blurring.
+
+    Args:
+      norm_a: `(N, H, W)` grey image `a`, locally normalised.
+      grey_a: `(N, H, W)` grey image `a` in [0, 1] (for the edge weights).
+      grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
+      maps: `(N, H, W, 2)` pixel maps a -> b.
+      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (vertical component stays 0).
+    Returns:
+      `(N, H, W, 2)` maps.
+    """
+    h, w = norm_a.shape[1:]
+    flow_row = (keep_vertical > 0.5)[:, None, None]
+    mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
+    ax, ay = gradients(norm_a)
+    edges = edge_weights(grey_a)
+    red = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 == 0)[None, ..., None]
+    xs = jnp.arange(w, dtype=jnp.float32)[None, None, :]
+    ys = jnp.arange(h, dtype=jnp.float32)[None, :, None]
+    win = lambda x: gaussian_filter(x, VARIATIONAL_SIGMA)
+
+    def warp_iteration(_, d0):
+        warped = warped_normalised(grey_b, d0)
+        it = warped - norm_a
+        bx, by = gradients(warped)
+        gx, gy = 0.5 * (ax + bx), 0.5 * (ay + by)
+        px, py = xs + d0[..., 0], ys + d0[..., 1]
+        inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
+        rho = jnp.where(inside, 1.0 / jnp.sqrt(it * it + DATA_EPS ** 2), 0.0)
+        jxx, jxy, jyy = win(rho * gx * gx) + DATA_PRIOR, win(rho * gx * gy), win(rho * gy * gy) + DATA_PRIOR
+        jx, jy = win(rho * gx * it), win(rho * gy * it)
+        coupling = [alpha * c * SMOOTH_EPS / jnp.sqrt(jnp.sum((_neighbour(d0, dy, dx) - d0) ** 2, -1) + SMOOTH_EPS ** 2)
+                    for c, (dy, dx) in zip(edges, _NEIGHBOURS)]
+        total = sum(coupling)
+        sxx, syy = jxx + total, jyy + total
+        det = sxx * syy - jxy * jxy
+
+        # right-hand side -j + sum c (D0_y - D0_x), the part that does not change within the sweeps
+        rhs = sum(c[..., None] * (_neighbour(d0, dy, dx) - d0) for c, (dy, dx) in zip(coupling, _NEIGHBOURS))
+        rhs = rhs - jnp.stack([jx, jy], -1)
+
+        def solve(d):
+            """Each pixel's d with its neighbours' held: (J + total I) d = -j + sum c (D0_y + d_y - D0_x)."""
+            r = rhs + sum(c[..., None] * _neighbour(d, dy, dx) for c, (dy, dx) in zip(coupling, _NEIGHBOURS))
+            rx, ry = r[..., 0], r[..., 1]
+            du = jnp.where(flow_row, (syy * rx - jxy * ry) / det, rx / sxx)
+            dv = jnp.where(flow_row, (sxx * ry - jxy * rx) / det, 0.0)
+            return jnp.stack([du, dv], -1)
+
+        def sweep(_, d):
+            for colour in (red, ~red):
+                d = jnp.where(colour, (1.0 - omega) * d + omega * solve(d), d)
+            return d
+
+        d = jax.lax.fori_loop(0, sweeps, sweep, jnp.zeros_like(d0))
+        return d0 + jnp.clip(d, -2.0, 2.0) * mask  # the linearisation holds about a pixel or two
+
+    return jax.lax.fori_loop(0, warps, warp_iteration, maps * mask)
+
+
 def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array) -> jax.Array:
-    """The "photometric" polish: `select_candidates`, then `lucas_kanade`.
+    """The "photometric" polish: `POLISH_ROUNDS` rounds of `select_candidates`, then `variational_refinement`
+    (the second round's candidates come from a map the first round made right on wider areas).
 
     Args:
       pairs: `(N, H, W, 6)` = [image a, image b], RGB in [0, 1] at the working size.
@@ -218,8 +302,11 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array) -> 
     """
     pairs, maps = pairs.astype(jnp.float32), maps.astype(jnp.float32)
     keep_vertical = keep_vertical.astype(jnp.float32)
-    norm_a = normalise_locally(pairs[..., :3].mean(-1))
-    grey_b = pairs[..., 3:].mean(-1)
+    grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
+    norm_a = normalise_locally(grey_a)
     mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
-    maps = select_candidates(norm_a, grey_b, maps * mask, mask)
-    return lucas_kanade(norm_a, grey_b, maps, keep_vertical)
+    maps = maps * mask
+    for _ in range(POLISH_ROUNDS):
+        maps = select_candidates(norm_a, grey_b, maps, mask)
+        maps = variational_refinement(norm_a, grey_a, grey_b, maps, keep_vertical)
+    return maps

@@ -681,8 +681,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
                    help="how the network is compiled: 'fast' (about 2-3x quicker to compile, 10-25%% slower per "
                         "pair), 'full' (XLA's default optimisation) or 'auto' (fast for inputs of at most "
-                        f"{inference.FAST_COMPILE_PAIRS} pairs, else full); compiled networks are cached between "
-                        "runs either way")
+                        f"{inference.FAST_COMPILE_PAIRS} pairs, else full); the --polish program is always "
+                        "compiled full; compiled programs are cached between runs either way")
     p.add_argument("--raw", default="png",
                    help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "
                         "(*_npy/), flo (flow, flow_flo/), pfm (disparity and depth, *_pfm/), or none; "

@@ -1,7 +1,8 @@
 """Test-time photometric polish (`bridge_jax.polish`, `Predictor(polish=)`, `--polish`): the filters against
-OpenCV, the local normalisation's invariances, Lucas-Kanade on sub-pixel translations of a smooth texture
-(flow and stereo rows), candidate selection on a hand-built bled motion boundary, and the wiring into the
-predictor, the export and the command."""
+OpenCV, the local normalisation's invariances, the polish on sub-pixel translations of a smooth texture
+(flow and stereo rows), matches near and beyond b's border, a textureless region, candidate selection and the
+refinement on a hand-built bled motion boundary, and the wiring into the predictor, the export and the
+command."""
 
 import json
 
@@ -64,11 +65,11 @@ def _translated_pair(u: float, v: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("stereo", [False, True])
-def test_lucas_kanade_recovers_a_sub_pixel_translation(stereo):
-    """From a zero map, a flow row finds (0.6, -0.3) and a stereo row the horizontal -1.4 (two clipped steps)
-    with its vertical component kept at exactly 0. Away from the image border the mean error is a few
-    hundredths of a pixel (bilinear resampling of the 9 px component biases the optimum by up to ~0.13 px), so
-    a wrong sign, a swapped component or a missing step would show at once."""
+def test_polish_recovers_a_sub_pixel_translation(stereo):
+    """From a zero map, a flow row finds (0.6, -0.3) and a stereo row the horizontal -1.4 with its vertical
+    component kept at exactly 0. Away from the image border the mean error is a few hundredths of a pixel
+    (bilinear resampling of the 9 px component biases the optimum by up to ~0.13 px), so a wrong sign, a
+    swapped component or a missing step would show at once."""
     u, v = (-1.4, 0.0) if stereo else (0.6, -0.3)
     pairs = jnp.asarray(_translated_pair(u, v))
     keep_vertical = jnp.asarray([0.0 if stereo else 1.0])
@@ -79,44 +80,105 @@ def test_lucas_kanade_recovers_a_sub_pixel_translation(stereo):
         assert np.all(out[..., 1] == 0.0)
 
 
-def test_matches_near_the_border_of_b_are_not_biased():
-    """A translation of 8.4 px started from 8: pixels whose match lies within 2-7 px of b's right border converge
-    like the others. `b` is normalised after the warp, in `a`'s windows; normalised in its own frame, its
-    windows there would be reflected where `a`'s are not, and those pixels ended 0.21 px off on average."""
+def _refine(pairs, maps, keep_vertical=(1.0,)):
+    grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
+    return np.asarray(polish.variational_refinement(polish.normalise_locally(grey_a), grey_a, grey_b,
+                                                    jnp.asarray(maps), jnp.asarray(keep_vertical)))[0]
+
+
+def test_matches_near_and_beyond_the_border_of_b():
+    """A translation of 8.4 px started from 8. Pixels whose match lies within 2-7 px of b's right border
+    converge like the others: `b` is normalised after the warp, in `a`'s windows (normalised in its own frame,
+    its windows there are reflected where `a`'s are not, and those pixels ended 0.21 px off). Pixels whose
+    match lies outside b (the last 8 columns) have no data term and take their neighbours' motion; with border
+    clamping as their data they would drift towards whatever the clamped column matches."""
     pairs = jnp.asarray(_translated_pair(8.4, 0.0))
-    norm_a, grey_b = polish.normalise_locally(pairs[..., :3].mean(-1)), pairs[..., 3:].mean(-1)
-    init = jnp.broadcast_to(jnp.float32([8.0, 0.0]), (1, H, W, 2))
-    out = np.asarray(polish.lucas_kanade(norm_a, grey_b, init, jnp.ones(1)))[0]
+    out = _refine(pairs, np.broadcast_to(np.float32([8.0, 0.0]), (1, H, W, 2)))
     near = np.abs(out[10:-10, W - 16:W - 11] - np.float32([8.4, 0.0]))  # matched at x + 8.4 in [W - 7.6, W - 2.6]
-    assert near.mean() < 0.1, near.mean()  # 0.06 now
+    assert near.mean() < 0.05, near.mean()
+    beyond = np.abs(out[10:-10, W - 8:] - np.float32([8.4, 0.0]))  # matched at x + 8.4 > W - 1
+    assert beyond.mean() < 0.05, beyond.mean()
 
 
-def test_flat_images_keep_the_network_map():
-    """Without texture every candidate costs the same and the normal equations have only the prior: the map
-    stays as it is (no candidate is 'clearly better', no Lucas-Kanade step lowers the error)."""
-    maps = jnp.asarray(np.random.default_rng(0).normal(size=(1, H, W, 2)).astype(np.float32))
-    out = polish.polish_maps(jnp.full((1, H, W, 6), 0.4), maps, jnp.ones(1))
-    np.testing.assert_allclose(np.asarray(out), np.asarray(maps), atol=1e-6)
+def test_a_textureless_region_takes_its_neighbours_motion():
+    """A flat disc (radius 14 px) in the textured image, the whole image translated by (2.3, -1.1). The map
+    given is right outside the disc and (0, 0) inside: no window inside the disc sees texture and every
+    candidate there costs the same, so no local step can move it, but the refinement's smoothness term carries
+    the surrounding motion in (the disc's inside is flat, so no edge weight cuts it off)."""
+    ys, xs = np.mgrid[:H, :W].astype(np.float64)
+    u, v, cy, cx = 2.3, -1.1, 32.0, 48.0
+
+    def image(x, y):
+        return np.where((x - cx) ** 2 + (y - cy) ** 2 < 14 ** 2, 0.5, _texture(x, y))
+
+    a, b = image(xs, ys), image(xs - u, ys - v)
+    pairs = jnp.asarray(np.concatenate([np.repeat(a[..., None], 3, -1), np.repeat(b[..., None], 3, -1)], -1)[None],
+                        jnp.float32)
+    maps = np.broadcast_to(np.float32([u, v]), (1, H, W, 2)).copy()
+    inner = (xs - cx) ** 2 + (ys - cy) ** 2 < 9 ** 2
+    maps[0][(xs - cx) ** 2 + (ys - cy) ** 2 < 16 ** 2] = 0.0
+    out = np.asarray(polish.polish_maps(pairs, jnp.asarray(maps), jnp.ones(1)))[0]
+    err = np.linalg.norm(out - np.float32([u, v]), axis=-1)
+    assert err[inner].mean() < 0.15, err[inner].mean()  # 0.05; 2.55 as given
 
 
-def test_candidate_selection_repairs_a_bled_motion_boundary(rng):
-    """A square of a random texture moves by (-4, 2) over a background that moves by (3, 0), both by whole
-    pixels (bilinear warps are then exact). The map given is the true one with the square's motion bled 6 px
-    into the background; above the square, where the background stays visible in b, selection takes the
-    background's (3, 0) back from the pixels further up, exactly, and leaves the square's inside alone."""
-    size = 96
+def test_flat_images_keep_a_constant_map():
+    """Without texture every candidate costs the same: selection keeps any map as it is (no candidate is
+    'clearly better'). The refinement then has only its smoothness term, which leaves a constant map exactly
+    where it is and only smooths a noisy one."""
+    flat = jnp.full((1, H, W, 6), 0.4)
+    noisy = jnp.asarray(np.random.default_rng(0).normal(size=(1, H, W, 2)).astype(np.float32))
+    grey = flat[..., :3].mean(-1)
+    kept = polish.select_candidates(polish.normalise_locally(grey), grey, noisy, jnp.ones((1, 1, 1, 2)))
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(noisy))
+    constant = jnp.broadcast_to(jnp.float32([3.2, -1.5]), (1, H, W, 2))
+    np.testing.assert_allclose(np.asarray(polish.polish_maps(flat, constant, jnp.ones(1))), np.asarray(constant),
+                               atol=1e-6)
+    smoothed = np.asarray(polish.polish_maps(flat, noisy, jnp.ones(1)))
+    assert np.abs(np.diff(smoothed, axis=2)).mean() < 0.5 * np.abs(np.diff(np.asarray(noisy), axis=2)).mean()
+
+
+def _bled_boundary(rng, size=96):
+    """A square of a random texture moving by (-4, 2) over a background moving by (3, 0), both by whole
+    pixels (bilinear warps are then exact); the true map with the square's motion bled 6 px outwards."""
     a = cv2.GaussianBlur(rng.uniform(size=(size, size)).astype(np.float32), (0, 0), 1.0)
     b = np.roll(a, 3, axis=1)  # background: a(x) at b(x + 3)
     y0, y1, x0, x1 = 40, 64, 36, 60  # the square in a
     b[y0 + 2:y1 + 2, x0 - 4:x1 - 4] = a[y0:y1, x0:x1]  # the square: a(x, y) at b(x - 4, y + 2)
     maps = np.broadcast_to(np.float32([3.0, 0.0]), (size, size, 2)).copy()
     maps[y0 - 6:y1 + 6, x0 - 6:x1 + 6] = (-4.0, 2.0)  # the square's motion, bled 6 px outwards
+    return a, b, maps, (y0, y1, x0, x1)
+
+
+def test_candidate_selection_repairs_a_bled_motion_boundary(rng):
+    """Above the square, where the background stays visible in b, selection takes the background's (3, 0)
+    back from the pixels further up, exactly, and leaves the square's inside alone."""
+    a, b, maps, (y0, y1, x0, x1) = _bled_boundary(rng)
     mask = jnp.ones((1, 1, 1, 2))
     out = np.asarray(polish.select_candidates(polish.normalise_locally(jnp.asarray(a)[None]), jnp.asarray(b)[None],
                                               jnp.asarray(maps)[None], mask))[0]
     np.testing.assert_array_equal(out[y0 - 6:y0 - 2, x0 + 4:x1 - 4], np.broadcast_to([3.0, 0.0], (4, 16, 2)))
     np.testing.assert_array_equal(out[y0 + 6:y1 - 6, x0 + 6:x1 - 6], np.broadcast_to([-4.0, 2.0], (12, 12, 2)))
     assert polish.candidate_offsets().shape == (32, 2)
+
+
+def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng, monkeypatch):
+    """The whole polish on the bled boundary: above the square the background's motion comes back and stays
+    within a few hundredths of a pixel of it up to 2 px from the square's edge, where the robust smoothness
+    weight lets the map jump. With a quadratic smoothness term (a huge epsilon) the two motions are averaged
+    across the edge instead."""
+    a, b, maps, (y0, y1, x0, x1) = _bled_boundary(rng)
+    pairs = jnp.asarray(np.concatenate([np.repeat(a[..., None], 3, -1), np.repeat(b[..., None], 3, -1)], -1)[None])
+    band = (slice(y0 - 6, y0 - 2), slice(x0 + 4, x1 - 4))
+
+    def err_above():
+        out = np.asarray(polish.polish_maps(pairs, jnp.asarray(maps)[None], jnp.ones(1)))[0]
+        return np.abs(out[band] - np.float32([3.0, 0.0])).mean()
+
+    robust = err_above()
+    assert robust < 0.05, robust
+    monkeypatch.setattr(polish, "SMOOTH_EPS", 1e3)
+    assert err_above() > 4 * robust
 
 
 def test_unknown_polish_is_one_clear_error():
@@ -131,7 +193,8 @@ PWC = {**models.model_config("pwc_lite"), "head_init": "kaiming_normal"}  # non-
 
 def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path):
     """`Predictor(polish="photometric")` = `polish_maps` on the plain predictor's (refined) maps, for a flow
-    and a stereo row in one batch, one compile; the exported artifact computes the same."""
+    and a stereo row in one batch, one trace of the network, in either compile mode; the exported artifact
+    computes the same."""
     pwc = models.init(0, PWC)
     pairs = rng.uniform(size=(2, 64, 128, 6)).astype(np.float32)
     plain = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1)
@@ -139,15 +202,26 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     rows = [False, True]
     want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
     got = polished.run_network(pairs, rows)
-    np.testing.assert_allclose(got, np.asarray(want), atol=1e-4)
+    # 200 SOR sweeps with robust weights on random images carry float reassociation between the fused and the
+    # unfused computation to a few thousandths of a pixel on a few pixels; on average they agree to 1e-5
+    np.testing.assert_allclose(got, np.asarray(want), atol=5e-3)
+    assert np.abs(got - np.asarray(want)).mean() < 1e-5
     assert np.abs(got - plain.run_network(pairs, rows)).max() > 1e-3  # the polish changed the maps
     assert np.all(got[1, ..., 1] == 0.0)  # the stereo row stays horizontal
     polished.run_network(pairs, rows)
     assert polished.trace_count == 1
+    # "fast" compiles the network at optimisation level 0 and the polish, a program of its own, in full
+    fast = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric",
+                               compile_mode="fast")
+    plain_fast = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, compile_mode="fast")
+    want_fast = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain_fast.run_network(pairs, rows)),
+                                   jnp.asarray([1.0, 0.0]))
+    np.testing.assert_allclose(fast.run_network(pairs, rows), np.asarray(want_fast), atol=5e-3)
     one = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, polish="photometric")
     loaded = export.load_exported(export.serialize_to_file(export.export_network(one, batch=1), tmp_path / "p.hlo"))
     px, _ = loaded.call(pairs[:1])
-    np.testing.assert_allclose(px, one.run_network(pairs[:1]), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(px, one.run_network(pairs[:1]), atol=5e-3)
+    assert np.abs(px - one.run_network(pairs[:1])).mean() < 1e-5
 
 
 def test_default_polish_comes_from_a_shipped_card_only(tmp_path):

@@ -63,7 +63,7 @@ class Entry:
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` on the built-in synthetic "
                   "stereo video (the `demo` config: 1,750 steps at 64x128, then `demo:finish`: 300 steps at "
-                  "128x256); a starting point, not a KITTI model; by default at its trained 128x256 with one "
+                  "128x256); a starting point, not a KITTI model; by default at 192x384 with one "
                   "--refine pass and --polish photometric"),
     "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
                   "at 128x256, then 256x512, on the synthetic "
