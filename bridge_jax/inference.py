@@ -457,13 +457,14 @@ class Predictor:
         if fn is None:
             options = {"xla_backend_optimization_level": 0} if self.compile_mode == "fast" else None
             shardings = {} if self.mesh is None else {"out_shardings": NamedSharding(self.mesh, P())}
-            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2, 4, 5, 6),
+            fn = self._jits[self.compile_mode] = jax.jit(self._forward, static_argnums=(2, 4, 5),
                                                          compiler_options=options, **shardings)
         return fn
 
-    def _forward(self, params, pairs, rows, keep_vertical, refine, symmetry, polish):
+    def _forward(self, params, pairs, rows, keep_vertical, refine, symmetry):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return predicted_maps(self.net, params, pairs, rows, keep_vertical, refine, symmetry, polish)
+        # no polish here: `forward` runs it as a program of its own (`_polish_program`)
+        return predicted_maps(self.net, params, pairs, rows, keep_vertical, refine, symmetry)
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
@@ -476,8 +477,7 @@ class Predictor:
         (N a multiple of the mesh size); `is_stereo` one bool per row. With `refine`, refined (`refine_maps`);
         with `polish`, polished (`polish.polish_maps`) by a program of its own (`_polish_program`)."""
         keep_vertical = _keep_vertical(is_stereo)
-        args = (self.params, pairs, self.net.static_rows(is_stereo), keep_vertical, self.refine, self.symmetry,
-                "none")
+        args = (self.params, pairs, self.net.static_rows(is_stereo), keep_vertical, self.refine, self.symmetry)
         maps = self._program(args)(*args)
         if self.polish == "none":
             return maps
@@ -515,7 +515,7 @@ class Predictor:
                       "separate": self.separate, "compile_mode": self.compile_mode}
             fn = self._kept[key] = executable_cache.cached_compile(self._net, args, config=config,
                                                                    folder=self.executable_cache,
-                                                                   static_argnums=(2, 4, 5, 6))
+                                                                   static_argnums=(2, 4, 5))
         return fn
 
     def lower(self, batch: int, is_stereo: bool = False):
@@ -524,7 +524,7 @@ class Predictor:
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
         rows = (is_stereo,) * batch
         return self._net.lower(self.params, spec, self.net.static_rows(rows), _keep_vertical(rows), self.refine,
-                               self.symmetry, "none")
+                               self.symmetry)
 
     def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
         """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.

@@ -143,19 +143,26 @@ def predict_pair_command(checkpoint: str, tmp_path):
     return paths, out, args
 
 
-def test_predict_symmetry_option(tiny_checkpoint, tmp_path, capsys):
-    """`bridge-predict --symmetry flips` writes the symmetric predictor's flow and says so in predict.json; an
-    unknown mode is one argparse error (exit 2) and writes nothing."""
+def check_predict_option(checkpoint: str, tmp_path, capsys, option: str, value: str, bad: str, **load_kwargs):
+    """`bridge-predict --OPTION VALUE` on `predict_pair_command`'s pair writes the flow that
+    `load_predictor(checkpoint, working_size=(128, 256), OPTION=VALUE, **load_kwargs)` predicts and records VALUE
+    in predict.json; `--OPTION BAD` is one argparse error (exit 2) that writes nothing."""
     import cv2
 
     from bridge_jax import predict
-    paths, out, args = predict_pair_command(tiny_checkpoint, tmp_path)
-    assert predict.main(args + ["--symmetry", "flips"]) == 0
-    assert json.loads((out / "predict.json").read_text())["symmetry"] == "flips"
-    want = inference.load_predictor(tiny_checkpoint, working_size=(128, 256), symmetry="flips").predict_pair(
+    paths, out, args = predict_pair_command(checkpoint, tmp_path)
+    assert predict.main(args + [f"--{option}", value]) == 0
+    assert json.loads((out / "predict.json").read_text())[option] == value
+    want = inference.load_predictor(checkpoint, working_size=(128, 256), **{option: value}, **load_kwargs).predict_pair(
         cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
     np.testing.assert_allclose(np.load(out / "flow_npy" / "f0.npy"), want, rtol=1e-4, atol=1e-4)
     with pytest.raises(SystemExit) as e:
-        predict.main([str(tmp_path / "bad") if a == str(out) else a for a in args] + ["--symmetry", "mirror"])
+        predict.main([str(tmp_path / "bad") if a == str(out) else a for a in args] + [f"--{option}", bad])
     assert e.value.code == 2 and not (tmp_path / "bad").exists()
-    assert "--symmetry: invalid choice: 'mirror'" in capsys.readouterr().err
+    assert f"--{option}: invalid choice: '{bad}'" in capsys.readouterr().err
+
+
+def test_predict_symmetry_option(tiny_checkpoint, tmp_path, capsys):
+    """`bridge-predict --symmetry flips` writes the symmetric predictor's flow and says so in predict.json; an
+    unknown mode is one argparse error (exit 2) and writes nothing."""
+    check_predict_option(tiny_checkpoint, tmp_path, capsys, "symmetry", "flips", "mirror")
