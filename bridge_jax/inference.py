@@ -45,7 +45,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import checkpointing, executable_cache, geometry, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
-from bridge_jax.polish import POLISH_MODES, check_polish, polish_maps
+from bridge_jax.polish import POLISH_MODES, check_polish, component_mask, polish_maps
 
 DEFAULT_HEIGHT = 256
 DEFAULT_WIDTH = 512
@@ -286,7 +286,7 @@ def refine_maps(estimate, pairs: jax.Array, maps: jax.Array, keep_vertical: jax.
       `(N, H, W, 2)` refined maps.
     """
     image_a, image_b = pairs[..., :3], pairs[..., 3:]
-    mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], axis=-1)[:, None, None, :]
+    mask = component_mask(keep_vertical)
 
     def one_pass(_, d):
         d = d * mask

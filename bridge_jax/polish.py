@@ -82,6 +82,12 @@ DATA_PRIOR = 1e-3
 """Added to the diagonal of the windowed data term: the 2x2 systems stay well posed without texture or smoothness."""
 
 
+def component_mask(keep_vertical: jax.Array) -> jax.Array:
+    """`(N, 1, 1, 2)` 1 for the map components a row keeps: (1, 1) for flow rows, (1, 0) for rectified stereo rows
+    (`keep_vertical (N,)`: 1.0 flow, 0.0 stereo), to multiply `(N, H, W, 2)` maps by."""
+    return jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
+
+
 def check_polish(polish: Any, option: str = "polish") -> str:
     """`polish` if it is one of `POLISH_MODES`, else a ValueError naming `option`."""
     if polish not in POLISH_MODES:
@@ -242,7 +248,7 @@ def variational_refinement(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Arr
     """
     h, w = norm_a.shape[1:]
     flow_row = (keep_vertical > 0.5)[:, None, None]
-    mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
+    mask = component_mask(keep_vertical)
     ax, ay = gradients(norm_a)
     edges = edge_weights(grey_a)
     red = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 == 0)[None, ..., None]
@@ -304,7 +310,7 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array) -> 
     keep_vertical = keep_vertical.astype(jnp.float32)
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
     norm_a = normalise_locally(grey_a)
-    mask = jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
+    mask = component_mask(keep_vertical)
     maps = maps * mask
     for _ in range(POLISH_ROUNDS):
         maps = select_candidates(norm_a, grey_b, maps, mask)
