@@ -55,6 +55,8 @@ MODEL_JSON = "model.json"
 CONFIG_JSON = "config.json"  # a training workdir's config (beside its model.json)
 PARAMS_DIR = "params"
 CHECKPOINTS_DIR = "checkpoints"
+RECIPE_JSON = "recipe.json"  # a recipe workdir (`bridge_jax.recipe`): its stages, each a workdir under stages/
+STAGES_DIR = "stages"
 STATE_ITEM = "state"
 BROKEN_SUFFIX = ".broken-"  # checkpoints/<step>.broken-<n>: a broken step dir moved aside (never deleted)
 
@@ -254,14 +256,34 @@ def _latest_step(ckpt_dir: Path) -> Path:
     return steps[0]
 
 
+def model_dir(path: str | os.PathLike) -> Path:
+    """The training workdir whose params stand for `path`: for a recipe workdir (a `recipe.json` beside
+    `stages/<name>/`), its latest stage that holds a checkpoint (the last stage once the recipe finished); any
+    other path as it is (absolute)."""
+    p = Path(path).absolute()
+    recipe = p / RECIPE_JSON
+    if not recipe.is_file():
+        return p
+    try:
+        names = [str(n) for n in json.loads(recipe.read_text())["stages"]]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{recipe}: not a readable recipe record ({_reason(e)})") from e
+    for name in reversed(names):
+        stage = p / STAGES_DIR / name
+        if _step_dirs(stage / CHECKPOINTS_DIR):
+            return stage
+    raise ValueError(f"{p}: a recipe workdir none of whose stages ({', '.join(names)}) has a checkpoint yet")
+
+
 def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]:
-    """Find `(model.json path, orbax tree path, subtree)` for any accepted checkpoint layout.
+    """Find `(model.json path, orbax tree path, subtree)` for any accepted checkpoint layout (a recipe workdir
+    stands for its latest stage, `model_dir`).
 
     For a training workdir the tree path is the newest step's, readable or not: `read_params` is the reader
     that skips broken steps; this is for callers that only need the model.json beside it."""
-    p = Path(path).absolute()
-    if not p.exists():
+    if not Path(path).exists():
         raise ValueError(f"checkpoint {path} does not exist")
+    p = model_dir(path)
     if (p / PARAMS_DIR).is_dir() and (p / MODEL_JSON).is_file():
         return p / MODEL_JSON, p / PARAMS_DIR, None
     if (p / CHECKPOINTS_DIR).is_dir():
@@ -369,11 +391,11 @@ def read_params(path: str | os.PathLike, *, require_finite: bool = False) -> tup
     that reads completely is used; steps that a running training deletes meanwhile are handled (re-listed).
     Params holding NaN/Inf are returned as they are unless `require_finite` (evaluating a diverged run is a
     legitimate use; `check_finite_params` is the check).
+    A recipe workdir reads as its latest stage (`model_dir`).
     Raises:
       ValueError naming the path when it is missing, of an unknown layout, or garbled (for a workdir: when no
       step reads, naming the newest step's problem); with `require_finite`, when the params are not finite.
     """
-    p = Path(path).absolute()
     model_json, tree_path, subtree = resolve_checkpoint(path)
     if not model_json.is_file():
         raise ValueError(f"{path}: missing {model_json}")
@@ -387,6 +409,7 @@ def read_params(path: str | os.PathLike, *, require_finite: bool = False) -> tup
     if separate:
         abstract = {"stereo": abstract, "flow": abstract}
     want = jax.tree.map(lambda a: tuple(a.shape), abstract)
+    p = model_dir(path)
     if subtree is not None and (p / CHECKPOINTS_DIR).is_dir():  # a training workdir (not one step dir)
         _, params = _read_newest_step(p, want, cfg["name"], require_finite)
     else:
@@ -756,8 +779,14 @@ class TrainCheckpointer:
 
 
 def find_train_step_dir(path: str | os.PathLike) -> str | None:
-    """Latest `checkpoints/<step>` dir (with a `state` item) of a workdir, or `path` itself if it is a step dir."""
+    """Latest `checkpoints/<step>` dir (with a `state` item) of a workdir (of a recipe workdir's latest stage,
+    `model_dir`), or `path` itself if it is a step dir."""
     p = Path(path).absolute()
+    if (p / RECIPE_JSON).is_file():
+        try:
+            p = model_dir(p)
+        except ValueError:
+            return None
     if p.parent.name == CHECKPOINTS_DIR and p.name.isdigit() and (p / STATE_ITEM).is_dir():
         return str(p)
     ckpts = p / CHECKPOINTS_DIR

@@ -3,18 +3,18 @@ r"""README main job: train the `demo` config on the built-in synthetic stereo vi
     bridge-demo --workdir=work/demo        # what `make demo` runs (9-18 min on 2 CPU cores)
 
 Steps:
-  1. train bridge_jax/configs/demo.py (64x128) into WORKDIR/train_64x128 (resumes if interrupted: run the command
+  1. train the demo recipe (bridge_jax/configs/demo.py) into WORKDIR/train: its `coarse` stage (64x128) in
+     WORKDIR/train/stages/coarse, then its `finish` stage (the same at 128x256, from the first stage's weights)
+     in WORKDIR/train/stages/finish, whose model is the demo model (resumes if interrupted: run the command
      again),
-  2. its second phase, `demo:finish` (the same at 128x256, from the first phase's weights), into WORKDIR/train:
-     the demo model,
-  3. write a held-out synthetic validation set in the KITTI 2015 layout to WORKDIR/val_data (the data module's
+  2. write a held-out synthetic validation set in the KITTI 2015 layout to WORKDIR/val_data (the data module's
      writer; the same samples the trainer validates on),
-  4. evaluate the trained model and the zero-motion / OpenCV baselines on it (bridge_jax.evaluate) into
+  3. evaluate the trained model and the zero-motion / OpenCV baselines on it (bridge_jax.evaluate) into
      WORKDIR/eval (results.md, results.json, pictures/), run as the shipped `demo` model answers by default
      (its card's test-time refinement passes and polish: `zoo.default_refine`, `zoo.default_polish`),
-  5. print where the metrics, TensorBoard logs and pictures are, and whether the model learned (validation
+  4. print where the metrics, TensorBoard logs and pictures are, and whether the model learned (validation
      flow EPE vs the zero-motion baseline, from one network pass as training validates), with what the
-     evaluation of step 4 measured next to it.
+     evaluation of step 3 measured next to it.
 """
 
 from __future__ import annotations
@@ -24,59 +24,51 @@ import os
 import sys
 import time
 
-from bridge_jax import checkpointing, cli, compile_cache, console, evaluate, inference, setup, train, zoo
+from bridge_jax import cli, compile_cache, console, evaluate, inference, recipe, train, zoo
 from bridge_jax.configs import demo as demo_config
 from bridge_jax.data import synthetic
 
-FIRST_PHASE_DIR = "train_64x128"
-"""Where in WORKDIR the first phase trains (the second, whose model is the demo's, trains in WORKDIR/train)."""
-
-
 def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None = None,
         enable_cache: bool = False) -> dict:
-    """Both training phases + validation set + evaluation; returns a summary dict (paths and headline numbers).
+    """The recipe's two stages + validation set + evaluation; returns a summary dict (paths and headline numbers).
 
-    `config_arg`: the demo config's argument ("short" for the smoke run); the second phase runs the same with
-    "finish" added. `overrides`: {"dotted.key": value} applied to the config of both phases. `enable_cache`: turn
-    on the persistent compilation cache of `config.compilation_cache_dir` (`compile_cache.enable`; what the command
+    `config_arg`: the demo config's argument ("short" for the smoke run). `overrides`: {"dotted.key": value}
+    applied to the base and every stage that sets the key (`recipe.override_everywhere`). `enable_cache`: turn on
+    the persistent compilation cache of `config.compilation_cache_dir` (`compile_cache.enable`; what the command
     line does; JAX keeps the first cache folder of a process, so library callers leave it off)."""
     workdir = os.path.abspath(workdir)
-    first_dir = os.path.join(workdir, FIRST_PHASE_DIR)
     train_dir = os.path.join(workdir, "train")
-    first_run = _parse(config_arg, overrides)
-    second_run = _parse(",".join([a for a in (config_arg or "").split(",") if a] + ["finish"]), overrides,
-                        init_from=first_dir)
-    _check_model_dir(train_dir, second_run)
+    config = demo_config.get_config(config_arg)
+    recipe.override_everywhere(config, [f"{k}={v}" if isinstance(v, str) else f"{k}={v!r}"
+                                        for k, v in (overrides or {}).items()])
+    runs = train._recipe_runs(config, train_dir)  # every stage checked before anything is written
+    train._check_recipe_workdir(train_dir, list(runs))
+    first_run, second_run = runs["coarse"], runs["finish"]
     if enable_cache:  # the demo's config is fixed and checked above: one cache serves training and evaluation
         compile_cache.enable(first_run.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
     val_dir = os.path.join(workdir, "val_data")
     eval_dir = os.path.join(workdir, "eval")
 
     t0 = time.time()
-    print(f"[1/4] Training the demo model, first phase ({first_run.loop.num_train_steps} steps, "
-          f"{first_run.height}x{first_run.width}, {first_run.model.config['name']}) in {first_dir}", flush=True)
-    first = train.train_and_evaluate(first_run, first_dir, config_name="demo")
-    if first["interrupted"]:
-        print(f"Training interrupted at step {first['step']}; run the same command again to resume.")
-        return {"interrupted": True, "train_dir": first_dir}
-    print(f"[2/4] Second phase ({second_run.loop.num_train_steps} steps at {second_run.height}x{second_run.width}, "
-          f"from the first phase's weights) in {train_dir}", flush=True)
-    result = train.train_and_evaluate(second_run, train_dir, config_name="demo:finish")
+    print(f"[1/3] Training the demo recipe: {first_run.loop.num_train_steps} steps at {first_run.height}x"
+          f"{first_run.width}, then {second_run.loop.num_train_steps} at {second_run.height}x{second_run.width} "
+          f"({first_run.model.config['name']}) in {train_dir}", flush=True)
+    result = train.run_recipe(config, train_dir, config_name="demo")
     train_s = time.time() - t0
     if result["interrupted"]:
-        print(f"Training interrupted at step {result['step']} of the second phase; run the same command again to "
-              "resume.")
+        print(f"Training interrupted at step {result['step']} (stage {result['stage']}); run the same command again "
+              "to resume.")
         return {"interrupted": True, "train_dir": train_dir}
 
-    print(f"[3/4] Writing {second_run.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
+    print(f"[2/3] Writing {second_run.eval.num_samples} held-out synthetic validation cycles to {val_dir}", flush=True)
     if not os.path.isdir(val_dir):
         synthetic.write_kitti_layout(val_dir, second_run.eval.num_samples, seed=second_run.eval.seed,
                                      height=second_run.height, width=second_run.width)
 
-    # Step 4 runs the model as `--checkpoint demo` answers a user by default (the shipped card's refinement
+    # Step 3 runs the model as `--checkpoint demo` answers a user by default (the shipped card's refinement
     # passes and polish); the headline ratio stays training's single-pass validation, so both are reported.
     refine, polish = zoo.default_refine("demo"), zoo.default_polish("demo")
-    print(f"[4/4] Evaluating the trained model (refine {refine}, polish {polish}: the shipped demo's defaults) and "
+    print(f"[3/3] Evaluating the trained model (refine {refine}, polish {polish}: the shipped demo's defaults) and "
           f"the baselines on it into {eval_dir}", flush=True)
     predictor = inference.load_predictor(train_dir, height=second_run.height, width=second_run.width, refine=refine,
                                          polish=polish)
@@ -89,9 +81,9 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
     eval_flow, eval_disp = model["flow"]["per_image_mean"], model["disparity"]["per_image_mean"]
     zero_flow = val.get("zero_flow_epe_all")
     summary = {
-        "interrupted": False, "train_dir": train_dir, "first_phase_dir": first_dir, "eval_dir": eval_dir,
-        "val_data": val_dir, "train_seconds": round(train_s, 1), "steps": first["step"] + result["step"],
-        "phase_steps": [first["step"], result["step"]],
+        "interrupted": False, "train_dir": train_dir, "eval_dir": eval_dir,
+        "val_data": val_dir, "train_seconds": round(train_s, 1), "steps": result["step"],
+        "stage_steps": {stage["name"]: stage["steps"] for stage in result["stages"]},
         "val_flow_epe": val.get("flow_epe_all"), "zero_flow_epe": val.get("zero_flow_epe_all"),
         "val_flow_epe_vs_zero": val.get("flow_epe_vs_zero"), "val_flow_noc_vs_zero": val.get("flow_noc_vs_zero"),
         "val_disp_epe": val.get("disp_epe_all"),
@@ -118,38 +110,10 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
               f"{summary['val_disp_epe']:.3f} px vs zero {summary['zero_disp_epe']:.3f} px (one network pass, as "
               f"training validates). Training took {train_s / 60:.1f} min.")
         if summary["eval_flow_epe_vs_zero"] is not None:
-            print(f"As `--checkpoint demo` answers by default (refine {refine}, polish {polish}; step 4's tables): "
+            print(f"As `--checkpoint demo` answers by default (refine {refine}, polish {polish}; step 3's tables): "
                   f"flow EPE {summary['eval_flow_epe']:.3f} px (ratio {summary['eval_flow_epe_vs_zero']:.2f}), "
                   f"disparity EPE {summary['eval_disp_epe']:.3f} px, D1 {summary['eval_d1_all']:.1f} %.")
     return summary
-
-
-def _check_model_dir(train_dir: str, second_run: setup.Run) -> None:
-    """Refuses (ValueError, before anything is trained) a WORKDIR/train that holds a run at another size than the
-    second phase's: a workdir of the one-phase demo (64x128, before 2026-12-03) would otherwise be taken for a
-    finished second phase."""
-    path = os.path.join(train_dir, checkpointing.CONFIG_JSON)
-    if not os.path.isfile(path):
-        return
-    try:
-        with open(path) as f:
-            old = json.load(f)
-        size = (int(old["height"]), int(old["width"]))
-    except (OSError, ValueError, KeyError, TypeError):
-        return  # not a config this check can read: the trainer's own checks decide
-    if size != (second_run.height, second_run.width):
-        raise ValueError(f"{train_dir} holds a run at {size[0]}x{size[1]}, but the demo model is now its second "
-                         f"phase at {second_run.height}x{second_run.width} (the demo trains in two phases since "
-                         f"2026-12-03: first {FIRST_PHASE_DIR}, then train); use a new --workdir or move that "
-                         "folder away")
-
-
-def _parse(config_arg: str | None, overrides: dict | None, init_from: str | None = None) -> setup.Run:
-    config = demo_config.get_config(config_arg)
-    config.update_from_flattened_dict(dict(overrides or {}))
-    if init_from is not None:
-        config.init_from = init_from
-    return setup.parse(config)
 
 
 def build_parser():

@@ -685,11 +685,13 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     runs each input at its own resolution instead (`native_working_size`; that size is then only the fallback).
     `dtype=None` uses the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
     `working_size` is the command-line form of the same choice (`cli.parse_working_size`): (H, W), "native",
-    "trained", or None: the size a shipped model's card recommends (chosen by its real-image checks), else
-    `DEFAULT_WORKING_SIZE`. `refine`: test-time refinement passes (`Predictor`); None = what a shipped model's
-    card recommends (`zoo.default_refine`), else 0. `symmetry`: test-time symmetry averaging (`Predictor`);
-    None = what a shipped model's card recommends (`zoo.default_symmetry`), else "none". `polish`: test-time
-    polish (`Predictor`); None = what a shipped model's card recommends (`zoo.default_polish`), else "none".
+    "trained", or None: the size the card recommends (chosen by its real-image checks), else
+    `DEFAULT_WORKING_SIZE`. `refine`: test-time refinement passes (`Predictor`); None = what the card
+    recommends (`zoo.default_refine`), else 0. `symmetry`: test-time symmetry averaging (`Predictor`);
+    None = what the card recommends (`zoo.default_symmetry`), else "none". `polish`: test-time
+    polish (`Predictor`); None = what the card recommends (`zoo.default_polish`), else "none". "The card":
+    that of the shipped model `path` names or was fine-tuned from (`zoo.defaults_source`, which follows a
+    checkpoint's recorded `init_from`).
     `executable_cache`: see `Predictor`.
     Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or

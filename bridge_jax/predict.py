@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, compile_cache, console, files, flowio, inference, metrics, visualize
+from bridge_jax import cli, compile_cache, console, files, flowio, inference, metrics, visualize, zoo
 from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -671,8 +671,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video: mono (none) or left|right side by side in each frame (sbs)")
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
-                   help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
-                        f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
+                   help=cli.WORKING_SIZE_HELP + "; default: what the card of the shipped model it is or was "
+                        f"fine-tuned from recommends (long: native), else {inference.DEFAULT_WORKING_SIZE}")
     cli.add_refine_option(p)
     cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
     cli.add_polish_option(p, inference.POLISH_MODES)
@@ -720,6 +720,44 @@ def parse_raw(text: str) -> list[str]:
     return list(dict.fromkeys(raw))
 
 
+SETTINGS_OPTIONS = ("--working-size", "--refine", "--symmetry", "--polish")
+"""The options of the test-time settings that a model's card (`zoo.defaults_source`) chooses by default."""
+
+
+def settings_line(checkpoint: str, predictor, given: Sequence[str] = ()) -> str:
+    """The one line saying which test-time settings `predictor` (loaded from `checkpoint`) runs with and why:
+    the card of the shipped model the checkpoint is or was fine-tuned from (`zoo.card_lineage`), or the plain
+    defaults; settings of `given` (those of `SETTINGS_OPTIONS` the user gave) are marked as given."""
+    size = "native" if predictor.native else f"{predictor.height}x{predictor.width}"
+    values = zip(SETTINGS_OPTIONS, (f"working size {size}", f"refine {predictor.refine}",
+                                    f"symmetry {predictor.symmetry}", f"polish {predictor.polish}"))
+    parts = [f"{text} ({option})" if option in given else text for option, text in values]
+    chain = zoo.card_lineage(checkpoint)
+    if len(chain) == 1:
+        why = f"the card of {chain[0]!r}"
+    elif chain:
+        via = f" (through {', '.join(chain[1:-1])})" if len(chain) > 2 else ""
+        why = f"the card of {chain[-1]!r}, which {checkpoint} was fine-tuned from{via}"
+    else:
+        why = "defaults"
+    return f"test-time settings: {', '.join(parts)} ({why}; {'/'.join(SETTINGS_OPTIONS)} override)"
+
+
+def predictor_from_args(args: argparse.Namespace, num_pairs: Optional[int]):
+    """The predictor of the command line `args` (`inference.load_predictor`), after printing its
+    `settings_line`; `num_pairs`: how many pairs it will run (`inference.compile_mode_for`), None if unknown."""
+    predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
+                                         size_option="--working-size", refine=args.refine,
+                                         refine_option="--refine", symmetry=args.symmetry,
+                                         symmetry_option="--symmetry", polish=args.polish, polish_option="--polish",
+                                         executable_cache=compile_cache.active_dir(),
+                                         compile_mode=inference.compile_mode_for(args.compile, num_pairs))
+    given = [option for option, value in zip(SETTINGS_OPTIONS, (args.working_size, args.refine, args.symmetry,
+                                                                 args.polish)) if value is not None]
+    print(settings_line(args.checkpoint, predictor, given), flush=True)
+    return predictor
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     console.install(enabled=not cli.debug_enabled(args))  # XLA's slow-compile banner stays out of the console
@@ -736,26 +774,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
-            predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size", refine=args.refine,
-                                                  refine_option="--refine", symmetry=args.symmetry,
-                                                  symmetry_option="--symmetry",
-                                                  polish=args.polish, polish_option="--polish",
-                                                  executable_cache=compile_cache.active_dir(),
-                                                  compile_mode=inference.compile_mode_for(args.compile, None))
+            predictor = predictor_from_args(args, num_pairs=None)
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
             source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
                                  stereo_video=args.stereo_video)
-            predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                                  size_option="--working-size", refine=args.refine,
-                                                  refine_option="--refine", symmetry=args.symmetry,
-                                                  symmetry_option="--symmetry",
-                                                  polish=args.polish, polish_option="--polish",
-                                                  executable_cache=compile_cache.active_dir(),
-                                                  compile_mode=inference.compile_mode_for(args.compile,
-                                                                                          source.num_pairs))
+            predictor = predictor_from_args(args, num_pairs=source.num_pairs)
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,

@@ -149,6 +149,7 @@ class LoopConfig:
     log_every: int = 50  # steps between metrics.jsonl / TensorBoard records
     checkpoint_every: int = 1000  # steps between checkpoints (one more at the end)
     eval_every: int = 2000  # steps between validations; 0 = only at the end, -1 = never
+    eval_at_start: bool = False  # validate before the first step too (a fine-tune shows where it starts)
     image_every: int = 1000  # steps between prediction pictures; <= 0 = with validations only
     keep_checkpoints: int = 3  # newest checkpoints kept in the workdir
     async_checkpoints: bool = True  # write checkpoints in the background while training goes on
@@ -336,6 +337,9 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     """
     if isinstance(config, Run):
         return config
+    if isinstance(config, ml_collections.ConfigDict) and config.get("stages", ()):
+        raise ConfigError("this config is a recipe of stages (config.stages): run it with bridge-train or "
+                          "train.train_and_evaluate, which parse each stage (bridge_jax.recipe.stage_config)")
     config = configs.move_flat_keys(config)
     try:
         model_values = config["model"].to_dict()
@@ -444,15 +448,23 @@ def list_config(config: ml_collections.ConfigDict) -> str:
     meanings = field_help()
     model = config["model"]["name"] if "model" in config and "name" in config["model"] else "?"
     meanings["model.name"] = f"the network: {' | '.join(models.NAMES)}"
-    order = ["", "model"] + [name for name, _ in SECTIONS if name]
-    keys = sorted(configs.leaf_keys(config), key=lambda k: (order.index(k.rpartition(".")[0])
-                                                            if k.rpartition(".")[0] in order else len(order), k))
+    order = ["", "model"] + [name for name, _ in SECTIONS if name] + ["stage_overrides"]
+    def section(key: str) -> str:
+        return "stage_overrides" if key.startswith("stage_overrides.") else key.rpartition(".")[0]
+
+    keys = sorted(configs.leaf_keys(config), key=lambda k: (order.index(section(k)) if section(k) in order
+                                                            else len(order), k))
     rows = []
     for key in keys:
         node = config
         for part in key.split("."):
             node = node[part]
-        if key.startswith("model."):
+        if key == "stages":
+            meaning = "the recipe's stages, in order (bridge_jax.recipe): each trains from the one before"
+        elif key.startswith("stage_overrides."):
+            stage, _, field = key[len("stage_overrides."):].partition(".")
+            meaning = f"stage {stage}'s {field} (on top of the base: " + (meanings.get(field) or "see above") + ")"
+        elif key.startswith("model."):
             meaning = meanings.get(key) or f"a setting of model {model} (bridge_jax.models.{model.split('_tiny')[0]})"
         else:
             meaning = meanings.get(key) or "(not a field of this version: parse refuses or ignores it)"

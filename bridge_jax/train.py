@@ -64,8 +64,8 @@ import ml_collections
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import (checkpointing, cli, compile_cache, configs, console, files, inference, models, network, setup,
-                        executable_cache, train_step)
+from bridge_jax import (checkpointing, cli, compile_cache, configs, console, files, inference, models, network, recipe,
+                        setup, executable_cache, train_step)
 from bridge_jax import workdir as workdir_mod, zoo
 from bridge_jax.data import folders, pipeline
 from bridge_jax.eval import photometric
@@ -149,6 +149,9 @@ def _check_workdir(run: setup.Run, workdir: str) -> bool:
     """Whether `workdir` holds a run to resume; a workdir of another model is refused (nothing is written)."""
     if os.path.exists(workdir) and not os.path.isdir(workdir):
         raise ConfigError(f"--workdir={workdir} exists and is not a directory")
+    if os.path.isfile(os.path.join(workdir, recipe.RECIPE_JSON)):
+        raise ConfigError(f"--workdir={workdir} holds the stages of a recipe (its {recipe.RECIPE_JSON}); this config "
+                          "is a single run: use a new workdir, or the recipe's config to resume it")
     resuming = checkpointing.find_train_step_dir(workdir) is not None
     old_model = os.path.join(workdir, checkpointing.MODEL_JSON)
     if resuming and os.path.exists(old_model):
@@ -375,23 +378,23 @@ def describe_validation(step: int, res: dict) -> str:
                      "zero motion)")
     if "disp_epe_all" in res:
         parts.append(f"disparity EPE {res['disp_epe_all']:.3f} px, D1 {res.get('disp_d1_all', float('nan')):.1f} %")
-    for key, label in (("flow_photo_ssim_l1_vs_zero", "flow photometric error"),
-                       ("stereo_photo_ssim_l1_vs_zero", "stereo photometric error")):
-        if key in res:
-            parts.append(f"{label} {res[key]:.2f}x zero motion")
-    if "stereo_lr_consistency_px" in res:
-        parts.append(f"left-right disparity inconsistency {res['stereo_lr_consistency_px']:.2f} px")
+    parts += photometric.describe(res)
     return f"step {step} validation: " + ("; ".join(parts) if parts else "no metrics")
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: str, *,
-                       enable_cache: bool = False, config_name: Optional[str] = None) -> dict:
+                       enable_cache: bool = False, config_name: Optional[str] = None,
+                       stage: Optional[recipe.StageRun] = None) -> dict:
     """Trains (or resumes) in `workdir`; returns a summary dict (final step, last metrics, validation, state).
 
-    `config`: a training config, or the `setup.Run` parsed from one. `enable_cache`: turn on the persistent
+    `config`: a training config, or the `setup.Run` parsed from one; a recipe config (`config.stages`) runs
+    each of its stages in turn (`run_recipe`). `enable_cache`: turn on the persistent
     compilation cache (`compile_cache.enable` with `config.compilation_cache_dir`) once the inputs are checked
     (the command line does; JAX keeps the first cache folder of a process, so a library caller usually does
-    not). `config_name`: how the config was named, for the start-up line."""
+    not). `config_name`: how the config was named, for the start-up line. `stage`: set by `run_recipe` for one
+    of its stages: metrics, TensorBoard and status.json go to the recipe's workdir, tagged with the stage."""
+    if recipe.is_recipe(config):
+        return run_recipe(config, workdir, enable_cache=enable_cache, config_name=config_name)
     global _RUNS_STARTED
     # The first run of a process counts its first step from the process's start (imports included); a later run
     # in the same process (bridge-demo's second phase) from its own start.
@@ -426,7 +429,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
 
     ##### Workdir: config, checkpoints, resume ##############################################################
     os.makedirs(workdir, exist_ok=True)
-    run_status = RunStatus(workdir, is_main, step=0, num_steps=num_steps)
+    log_dir = stage.log_dir if stage else workdir  # a recipe's stages log into the recipe's workdir
+    stage_fields = ({"stage": stage.name, "stage_index": stage.index + 1, "num_stages": stage.count}
+                    if stage else {})
+    run_status = RunStatus(log_dir, is_main, step=0, num_steps=num_steps, **stage_fields)
     try:
         if is_main:
             files.write_json(os.path.join(workdir, checkpointing.CONFIG_JSON), run.config_json)
@@ -437,7 +443,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         data_iter = iter(dataset)
         state, start_step = _restore(ckpt, state, data_iter, is_main)
         if is_main:
-            print(_startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
+            print(("" if stage is None else f"{stage.label}: ")
+                  + _startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
         run_status.update(step=start_step, start_step=start_step, last_checkpoint=ckpt.latest_step())
 
         ##### Update step and validation ###########################################################################
@@ -445,7 +452,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
                                         dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                         mesh=mesh)
-        logger = MetricsLogger(workdir, is_main, resume_step=start_step if start_step > 0 else None)
+        logger = MetricsLogger(log_dir, is_main, resume_step=start_step if start_step > 0 else None,
+                               stage={"name": stage.name, "offset": stage.offset} if stage else None)
+        if stage and start_step == 0:
+            # what the stage starts from: the init_from path and the sum of squares of the initial params, so the
+            # record shows that stage k starts from stage k - 1's final params
+            logger.stage_start(stage.index, stage.count, init_from=run.init_from,
+                               params_sq_sum=params_square_sum(state["params"]))
         global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
         def run_validation(step, log_metrics=True, first_only=False):
@@ -469,8 +482,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
 
         with _StopSignals(announce=is_main, on_abort=abort) as stop, \
                 tqdm(total=num_steps, initial=start_step, unit="step", dynamic_ncols=True, file=sys.stderr,
-                     disable=not (is_main and loop.progress_bar)) as bar:
+                     disable=not (is_main and loop.progress_bar), desc=stage.label if stage else None) as bar:
             try:
+                if val_data and loop.eval_at_start and start_step == 0 and num_steps > 0:
+                    val = run_validation(0)  # where the run starts from (a fine-tune's starting point)
                 while step < num_steps:
                     if stop.received is not None:
                         interrupted = True
@@ -494,7 +509,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                     ckpt.save(step, state, data_iter.get_state())
 
                     if step % loop.log_every == 0 or step == num_steps:
-                        extra = {**meter.window(), "nonfinite_total": guard.total, "epoch": step / steps_per_epoch}
+                        extra = {**meter.window(), "nonfinite_total": guard.total, "epoch": step / steps_per_epoch,
+                                 **({"recipe/stage_index": stage.index + 1} if stage else {})}
                         logger.scalars(step, {**{k: v for k, v in metrics.items() if k != "nonfinite"}, **extra})
                         run_status.update(step=step, steps_per_s=1.0 / max(extra["step_time_s"], 1e-9),
                                           last_checkpoint=ckpt.latest_step())
@@ -512,7 +528,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                     if is_main:
                         print(f"\nSaving a checkpoint at step {step} and exiting.", file=sys.stderr, flush=True)
                 elif finished_before:
-                    val = last_validation(workdir)
+                    val = last_validation(log_dir, stage.name if stage else None)
                 elif val_data:
                     val = run_validation(step)
                 skips = dataset.skips.report()
@@ -547,8 +563,94 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         raise
 
 
+def params_square_sum(params) -> float:
+    """The sum of squares of every parameter, in float64 on the host: a fingerprint of a parameter tree."""
+    return float(sum(np.sum(np.square(np.asarray(jax.device_get(x), np.float64))) for x in jax.tree.leaves(params)))
+
+
 _RUNS_STARTED = 0
 """Training runs started in this process (`train_and_evaluate` calls)."""
+
+
+def _recipe_runs(config: ml_collections.ConfigDict, workdir: str) -> dict[str, setup.Run]:
+    """{stage name: its checked `setup.Run`}, in order: stage k > 0 starts from stage k - 1's workdir. Every
+    stage's config is checked before anything is written (ConfigError naming the stage's field)."""
+    try:
+        names = recipe.stage_names(config)
+        configs_by_stage = {name: recipe.stage_config(config, name) for name in names}
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
+    runs = {}
+    for i, name in enumerate(names):
+        cfg = configs_by_stage[name]
+        if i > 0:
+            if "init_from" in recipe.stage_settings(config, name):
+                raise ConfigError(f"config.stage_overrides.{name}.init_from: stage {name} starts from the stage "
+                                  f"before it ({names[i - 1]}); only the first stage may set init_from")
+            cfg.init_from = recipe.stage_dir(workdir, names[i - 1])
+        try:
+            runs[name] = setup.parse(cfg)
+        except ConfigError as e:
+            raise ConfigError(f"stage {name}: {e}") from e
+    return runs
+
+
+def _check_recipe_workdir(workdir: str, names: Sequence[str]) -> None:
+    """Refuses (ConfigError, nothing written) a workdir that holds a single run or another recipe."""
+    if os.path.exists(workdir) and not os.path.isdir(workdir):
+        raise ConfigError(f"--workdir={workdir} exists and is not a directory")
+    if os.path.isdir(os.path.join(workdir, checkpointing.CHECKPOINTS_DIR)):
+        raise ConfigError(f"--workdir={workdir} holds a single training run, not the stages of a recipe; use a new "
+                          "workdir for the recipe")
+    try:
+        record = recipe.read_record(workdir)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
+    if record is not None and list(record.get("stages", [])) != list(names):
+        raise ConfigError(f"--workdir={workdir} holds a recipe of the stages {record.get('stages')}; this config's "
+                          f"stages are {list(names)}. Use a new workdir (or the same recipe) to resume.")
+
+
+def run_recipe(config: ml_collections.ConfigDict, workdir: str, *, enable_cache: bool = False,
+               config_name: Optional[str] = None) -> dict:
+    """Runs the stages of a recipe config (`bridge_jax.recipe`) in order in `workdir`, each in its own
+    `stages/<name>/` workdir from the previous stage's final params; a finished stage is skipped, an interrupted
+    one resumes at its step. Returns the last stage's `train_and_evaluate` summary with "step" counted across
+    the recipe and "stages" ([{"name", "steps", "seconds", "validation"}] of the finished stages), or the
+    interrupted stage's summary with "stage" naming it."""
+    workdir = os.path.abspath(workdir)
+    runs = _recipe_runs(config, workdir)
+    names = list(runs)
+    _check_recipe_workdir(workdir, names)
+    first = runs[names[0]]
+    if enable_cache:
+        compile_cache.enable(first.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
+    os.makedirs(workdir, exist_ok=True)
+    if jax.process_index() == 0:
+        recipe.write_record(workdir, names, {name: run.config_json for name, run in runs.items()}, config_name)
+    offset, stages, result = 0, [], None
+    for i, name in enumerate(names):
+        done = recipe.finished(workdir, name)
+        if done is not None:
+            print(f"stage {i + 1}/{len(names)} {name}: finished earlier ({done['steps']} steps), not run again",
+                  flush=True)
+        else:
+            t0 = time.time()
+            result = train_and_evaluate(runs[name], recipe.stage_dir(workdir, name), config_name=config_name,
+                                        stage=recipe.StageRun(name, i, len(names), offset, workdir))
+            if result["interrupted"]:
+                return dict(result, stage=name, step=offset + result["step"], workdir=workdir, stages=stages)
+            done = {"steps": result["step"], "seconds": round(time.time() - t0, 1),
+                    "validation": result["validation"]}
+            if jax.process_index() == 0:
+                recipe.mark_finished(workdir, name, **done)
+        stages.append({"name": name, **done})
+        offset += int(done["steps"])
+    if result is None:  # every stage had finished before: nothing ran
+        last = checkpointing.find_train_step_dir(recipe.stage_dir(workdir, names[-1]))
+        result = {"start_step": offset, "interrupted": False, "nonfinite_total": 0, "last_metrics": {},
+                  "checkpoint": last, "skipped_data": {}, "state": None}
+    return dict(result, step=offset, workdir=workdir, stages=stages, validation=stages[-1]["validation"])
 
 
 def _first_step(step_fn, state, batch, run: setup.Run, run_status: RunStatus, is_main: bool,
@@ -671,16 +773,23 @@ def split_config_overrides(argv: Sequence[str]) -> tuple[list[str], list[str]]:
 
 def load_config(spec: str, overrides: Sequence[str]) -> ml_collections.ConfigDict:
     """The config `spec` (name or file) with `overrides` applied; ConfigError (one line) naming the config file,
-    or the misspelt key and its close matches."""
+    or the misspelt key and its close matches. In a recipe an override sets the base and every stage that sets
+    the same key (`recipe.override_everywhere`)."""
     try:
         config = configs.load(spec)
+        staged = recipe.is_recipe(config)
+        if staged:
+            recipe.stage_names(config)
     except ValueError as e:
-        raise ConfigError(str(e)) from e
+        raise ConfigError(str(e) if str(e).startswith("--config") else f"--config {spec}: {e}") from e
     except Exception as e:  # an error inside the user's config file
         raise ConfigError(f"--config {spec}: the config file failed: {type(e).__name__}: {e}") from e
     for item in overrides:
         try:
-            configs.override(config, [item], hint_prefix="--config.")
+            if staged:
+                recipe.override_everywhere(config, [item])
+            else:
+                configs.override(config, [item], hint_prefix="--config.")
         except ValueError as e:
             raise ConfigError(f"--config.{item}: {str(e).split(': ', 1)[-1]}") from e
     return config

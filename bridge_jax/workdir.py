@@ -53,46 +53,75 @@ class MetricsLogger:
 
     `resume_step`: the step a resumed run restarts from. Records of later steps (written by the previous run
     after its last checkpoint, and redone now) are dropped from metrics.jsonl and TensorBoard's events are
-    purged past it, so both read as one run."""
+    purged past it, so both read as one run.
 
-    def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None):
+    `stage`: {"name", "offset"} of a recipe stage (`bridge_jax.recipe`) logging into the recipe's workdir: every
+    record carries "stage" (its name) and "stage_step" (the step the caller passes, inside the stage), and its
+    "step" and TensorBoard step are offset by the steps of the stages before it. A stage always truncates to
+    its own restart (`resume_step`, 0 for a fresh start): records a killed attempt of it wrote are dropped."""
+
+    def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None,
+                 stage: Optional[dict] = None):
         self.enabled = enabled
         self.image_dir = os.path.join(workdir, IMAGES_DIR)
         self.tb = None
         self.jsonl = None
+        self.offset = int(stage["offset"]) if stage else 0
+        self.tags = {"stage": stage["name"]} if stage else {}
+        if stage:
+            resume_step = resume_step or 0
         if enabled:
             path = os.path.join(workdir, METRICS_JSONL)
             if resume_step is not None:
-                truncate_metrics(path, resume_step)
+                truncate_metrics(path, self.offset + resume_step)
             self.tb = SummaryWriter(os.path.join(workdir, TENSORBOARD_DIR),
-                                    purge_step=None if resume_step is None else int(resume_step) + 1)
+                                    purge_step=None if resume_step is None else self.offset + int(resume_step) + 1)
             self.jsonl = open(path, "a")
+
+    def _head(self, step: int, kind: str) -> dict:
+        """The fields every record starts with: its step (across a recipe), kind, time, and a stage's tags."""
+        head = {"step": self.offset + int(step), "kind": kind, "time": time.time(), **self.tags}
+        if self.tags:
+            head["stage_step"] = int(step)
+        return head
 
     def scalars(self, step: int, values: dict, kind: str = "train") -> None:
         if not self.enabled:
             return
         clean = {k: scalar(v) for k, v in values.items()}
-        rec = {"step": int(step), "kind": kind, "time": time.time(), **clean}
+        rec = {**self._head(step, kind), **clean}
         self.jsonl.write(json.dumps(rec, allow_nan=True) + "\n")
         self.jsonl.flush()
         for k, v in clean.items():
             if math.isfinite(v):
-                self.tb.add_scalar(k if "/" in k and kind == "train" else f"{kind}/{k}", v, int(step))
+                self.tb.add_scalar(k if "/" in k and kind == "train" else f"{kind}/{k}", v, self.offset + int(step))
 
     def record(self, step: int, kind: str, payload: dict) -> None:
         """A non-scalar event (e.g. the data-skip report) in metrics.jsonl only."""
         if self.enabled:
-            self.jsonl.write(json.dumps({"step": int(step), "kind": kind, "time": time.time(), **payload}) + "\n")
+            self.jsonl.write(json.dumps({**self._head(step, kind), **payload}) + "\n")
             self.jsonl.flush()
 
+    def stage_start(self, index: int, count: int, **payload) -> None:
+        """Marks the start of a recipe stage: a "stage_start" record (with `payload`), TensorBoard text at the
+        boundary, and the scalar `recipe/stage_index` (1-based) there (the trainer logs it again with every train
+        record, so the curve steps up at each boundary)."""
+        if not self.enabled or not self.tags:
+            return
+        self.record(0, "stage_start", {"stage_index": index + 1, "num_stages": count, **payload})
+        self.tb.add_text("recipe/stage", f"stage {index + 1}/{count}: {self.tags['stage']} starts", self.offset)
+        self.tb.add_scalar("recipe/stage_index", index + 1, self.offset)
+
     def image(self, step: int, tag: str, rgb: np.ndarray) -> None:
-        """An RGB uint8 (H, W, 3) picture: TensorBoard (tensorboardX's add_image) and images/<tag>_<step>.png."""
+        """An RGB uint8 (H, W, 3) picture: TensorBoard (tensorboardX's add_image) and images/<tag>_<step>.png
+        (the step across a recipe)."""
         if not self.enabled:
             return
         rgb = np.ascontiguousarray(np.asarray(rgb, np.uint8))
-        self.tb.add_image(tag, rgb, int(step), dataformats="HWC")
+        step = self.offset + int(step)
+        self.tb.add_image(tag, rgb, step, dataformats="HWC")
         os.makedirs(self.image_dir, exist_ok=True)
-        visualize.write_image(os.path.join(self.image_dir, f"{tag.replace('/', '_')}_{int(step):07d}.png"), rgb)
+        visualize.write_image(os.path.join(self.image_dir, f"{tag.replace('/', '_')}_{step:07d}.png"), rgb)
 
     def close(self) -> None:
         if self.enabled:
@@ -122,8 +151,9 @@ def truncate_metrics(path: str, resume_step: int) -> int:
     return dropped
 
 
-def last_validation(workdir: str) -> dict:
-    """The last "val" record of a workdir's metrics.jsonl (a finished run re-run does not validate again)."""
+def last_validation(workdir: str, stage: Optional[str] = None) -> dict:
+    """The last "val" record of a workdir's metrics.jsonl (a finished run re-run does not validate again); of
+    recipe stage `stage` only, when given (its "stage" and "stage_step" tags left out)."""
     last: dict = {}
     path = os.path.join(workdir, METRICS_JSONL)
     if os.path.exists(path):
@@ -133,8 +163,8 @@ def last_validation(workdir: str) -> dict:
                     rec = json.loads(line)
                 except json.JSONDecodeError:
                     continue
-                if rec.get("kind") == "val":
-                    last = {k: v for k, v in rec.items() if k not in ("kind", "time", "step")}
+                if rec.get("kind") == "val" and (stage is None or rec.get("stage") == stage):
+                    last = {k: v for k, v in rec.items() if k not in ("kind", "time", "step", "stage", "stage_step")}
     return last
 
 
@@ -234,6 +264,10 @@ def describe_status(workdir: str, now: float | None = None) -> tuple[str, bool]:
     stale = is_stale(st, now)
     step = f"step {st.get('step', '?')}" + (f"/{st['num_steps']}" if st.get("num_steps") else "")
     parts = [f"{workdir}: {st['status']}", step]
+    if st.get("stage"):  # a recipe (bridge_jax.recipe): which stage the status and the step are of
+        parts[0] = f"{workdir}: stage {st.get('stage_index', '?')}/{st.get('num_stages', '?')} {st['stage']} {st['status']}"
+        if st["status"] == "finished" and st.get("stage_index") != st.get("num_stages"):
+            parts[0] += " (the recipe goes on with the next stage)"
     if st.get("steps_per_s"):
         parts.append(f"{float(st['steps_per_s']):.2f} steps/s")
     if st.get("last_checkpoint"):

@@ -23,7 +23,7 @@ import re
 import sys
 import time
 
-from bridge_jax import configs, setup, train
+from bridge_jax import configs, recipe, setup, train
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     for text in args.variants:
         name, items = parse_variant(text)
         base = ",".join(a for a in (args.base, "resnet_md_tiny" if args.model == "resnet_md_tiny" else "") if a)
-        config = configs.load(f"demo:{base}")
+        config = recipe.single_run(configs.load(f"demo:{base}"))  # the demo recipe's first stage
         configs.override(config, items + [f"loop.num_train_steps={args.steps}", f"loop.eval_every={args.steps}",
                                           "loop.image_every=-1", f"loop.checkpoint_every={args.steps}", "loop.progress_bar=False"])
         run = setup.parse(config)

@@ -10,7 +10,7 @@ import jax
 import ml_collections
 import pytest
 
-from bridge_jax import configs, setup, train
+from bridge_jax import configs, recipe, setup, train
 
 NOT_A_FIELD = "(not a field of this version"
 
@@ -131,7 +131,8 @@ def test_train_cli_refuses_a_negative_step_count_in_one_line(tmp_path, capsys):
     code = train.main(["--config=demo:short", f"--workdir={tmp_path / 'w'}", "--config.loop.num_train_steps=-5"])
     err = capsys.readouterr().err
     assert code == 2 and err.strip().splitlines() == [
-        "error: config.loop.num_train_steps=-5: must be an integer >= 1, or -1 (derive from the data)"]
+        # demo is a recipe: the error names the first stage whose config refuses the value
+        "error: stage coarse: config.loop.num_train_steps=-5: must be an integer >= 1, or -1 (derive from the data)"]
     assert not (tmp_path / "w").exists()
 
 
@@ -139,7 +140,7 @@ def test_train_cli_refuses_a_negative_step_count_in_one_line(tmp_path, capsys):
 def test_all_devices_means_those_that_divide_the_global_batch(batch, used):
     """num_devices=-1 in one process on this 8-device session: the mesh is the most devices that divide
     global_batch (a batch of 9 cycles: 3 devices of 3), all 8 when they do; an explicit count is never changed."""
-    cfg = configs.load("demo")
+    cfg = recipe.single_run(configs.load("demo"))
     cfg.global_batch = batch
     assert cfg.num_devices == -1 and len(jax.devices()) == 8
     run = setup.parse(cfg)

@@ -21,22 +21,23 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads((wd / "demo_summary.json").read_text())
-    # both phases ran: 30 steps at 64x128, then 10 at 128x256 from their weights, which are the demo model
-    assert summary["phase_steps"] == [30, 10] and summary["steps"] == 40 and not summary["interrupted"]
-    first = json.loads((wd / "train_64x128" / "config.json").read_text())
-    second = json.loads((wd / "train" / "config.json").read_text())
+    # both stages of the demo recipe ran: 30 steps at 64x128, then 10 at 128x256 from their weights, which are the
+    # demo model (the recipe workdir WORKDIR/train stands for its last stage)
+    assert summary["stage_steps"] == {"coarse": 30, "finish": 10} and summary["steps"] == 40
+    assert not summary["interrupted"] and summary["train_dir"] == str(wd / "train")
+    first = json.loads((wd / "train" / "stages" / "coarse" / "config.json").read_text())
+    second = json.loads((wd / "train" / "stages" / "finish" / "config.json").read_text())
     assert (first["height"], first["width"], second["height"], second["width"]) == (64, 128, 128, 256)
-    assert second["init_from"] == str(wd / "train_64x128") and first["init_from"] == ""
-    assert summary["train_dir"] == str(wd / "train")
-    # the second run of the process times its first step from its own start, not from the process's (which would
-    # include the whole first phase: its cold compile alone is longer than the second phase after its first step)
-    st1 = json.loads((wd / "train_64x128" / "status.json").read_text())
-    st2 = json.loads((wd / "train" / "status.json").read_text())
-    assert 0 < st2["first_step_s"] <= st2["ended"] - st2["started"] + 5.0, (st1, st2)
+    assert second["init_from"] == str(wd / "train" / "stages" / "coarse") and first["init_from"] == ""
+    # the second stage of the process times its first step from its own start, not from the process's (which
+    # would include the whole first stage: its cold compile alone is longer than the second stage after its first
+    # step)
+    st = json.loads((wd / "train" / "status.json").read_text())
+    assert st["stage"] == "finish" and 0 < st["first_step_s"] <= st["ended"] - st["started"] + 5.0, st
     # The validation numbers are real EPEs against a positive zero-motion baseline, not placeholders.
     assert summary["zero_flow_epe"] > 0.5 and summary["zero_disp_epe"] > 0.5
     assert 0.2 < summary["val_flow_epe_vs_zero"] < 5.0
-    # step 4 evaluates the model as the shipped demo answers by default, and its numbers are the tables'
+    # step 3 evaluates the model as the shipped demo answers by default, and its numbers are the tables'
     assert (summary["eval_refine"], summary["eval_polish"]) == (zoo.default_refine("demo"), zoo.default_polish("demo"))
     scored = json.loads((wd / "eval" / "results.json").read_text())
     assert (scored["refine"], scored["polish"]) == (summary["eval_refine"], summary["eval_polish"])
@@ -52,17 +53,17 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
     assert "Where things are" in r.stdout
 
 
-def test_demo_refuses_a_one_phase_workdir_before_training(tmp_path):
-    """A workdir of the one-phase demo (its model at 64x128 in WORKDIR/train) is refused with one error naming the
-    folder and both sizes, before anything is trained or written."""
+def test_demo_refuses_a_single_run_workdir_before_training(tmp_path):
+    """A WORKDIR/train that holds one training run (the demo of before its recipe: checkpoints directly in it) is
+    refused with one error naming the folder, before anything is trained or written."""
     from bridge_jax import demo
-    (tmp_path / "train").mkdir()
-    (tmp_path / "train" / "config.json").write_text(json.dumps({"height": 64, "width": 128}))
+    (tmp_path / "train" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "train" / "config.json").write_text(json.dumps({"height": 128, "width": 256}))
     before = sorted(p.name for p in tmp_path.rglob("*"))
     try:
         demo.run(str(tmp_path), config_arg="short")
     except ValueError as e:
-        assert str(tmp_path / "train") in str(e) and "64x128" in str(e) and "128x256" in str(e), e
+        assert str(tmp_path / "train") in str(e) and "single training run" in str(e), e
     else:
-        raise AssertionError("a 64x128 WORKDIR/train was taken for the second phase")
+        raise AssertionError("a single-run WORKDIR/train was taken for the demo's recipe")
     assert sorted(p.name for p in tmp_path.rglob("*")) == before

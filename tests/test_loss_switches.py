@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bridge_jax import configs, losses, setup, train_step
+from bridge_jax import configs, losses, recipe, setup, train_step
 from tests.scenes import gt_maps, translating_cycle
 
 H, W = 64, 128
@@ -162,7 +162,7 @@ def test_gradient_clipping_by_global_norm():
     ("clip_grad_norm=-1.0", r"config.clip_grad_norm must be >= 0"),
 ])
 def test_unknown_switch_values_are_one_config_error(item, match):
-    c = configs.load("demo:short")
+    c = recipe.single_run(configs.load("demo:short"))
     configs.override(c, [item])
     with pytest.raises(setup.ConfigError, match=match):
         setup.parse(c)

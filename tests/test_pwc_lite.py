@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bridge_jax import models, setup
+from bridge_jax import models, recipe, setup
 from bridge_jax.configs import demo
 from bridge_jax.models import coordinates, pwc_lite
 
@@ -120,7 +120,7 @@ def test_pyramid_levels_follow_the_working_size():
 
 
 def test_too_small_working_size_is_one_config_error():
-    c = demo.get_config("short")
+    c = recipe.single_run(demo.get_config("short"))
     c.height, c.width = 16, 32
     with pytest.raises(setup.ConfigError, match=r"config.height/config.width.*too small for pwc_lite"):
         setup.parse(c)

@@ -1,7 +1,9 @@
-"""The real-image experiment's ground truth (experiments/real_images.py): hand-computed cases."""
+"""The real-image checks' ground truth (`bridge_jax.eval.real_checks`) and the working-size choice of
+experiments/real_images.py: hand-computed cases."""
 import numpy as np
 import pytest
 
+from bridge_jax.eval import real_checks
 from experiments import real_images
 
 
@@ -18,7 +20,7 @@ def test_translation_homography_flow_and_pixels():
     rng = np.random.default_rng(0)
     photo = _photo(rng)
     shift = np.array([[1.0, 0, 3.0], [0, 1.0, 2.0], [0, 0, 1.0]])
-    out = real_images.homography_pair(photo, photo, rng, homography=shift, patches=[], photometric=False)
+    out = real_checks.homography_pair(photo, photo, rng, homography=shift, patches=[], photometric=False)
     h, w = out["frame_t"].shape[:2]
     assert (h, w) == (120 - 24, 160 - 32)  # 10 % margins, rounded
     np.testing.assert_allclose(out["flow"][..., 0], 3.0)
@@ -35,7 +37,7 @@ def test_zoom_homography_flow_is_hand_computed():
     rng = np.random.default_rng(1)
     photo = _photo(rng)
     zoom = np.diag([1.02, 1.02, 1.0])
-    out = real_images.homography_pair(photo, photo, rng, homography=zoom, patches=[], photometric=False)
+    out = real_checks.homography_pair(photo, photo, rng, homography=zoom, patches=[], photometric=False)
     h, w = out["flow"].shape[:2]
     ys, xs = np.mgrid[0:h, 0:w]
     np.testing.assert_allclose(out["flow"][..., 0], 0.02 * xs, atol=1e-5)
@@ -49,7 +51,7 @@ def test_moving_patch_flow_and_occlusion():
     photo = _photo(rng)
     patch = {"centre": (60.0, 48.0), "half": (10.0, 10.0), "ellipse": False, "shift": (10.0, 0.0),
              "affine": np.eye(2), "offset": (80.0, 60.0)}
-    out = real_images.homography_pair(photo, photo, rng, homography=np.eye(3), patches=[patch],
+    out = real_checks.homography_pair(photo, photo, rng, homography=np.eye(3), patches=[patch],
                                       photometric=False)
     flow, noc = out["flow"], out["noc"]
     assert flow[48, 60, 0] == 10.0 and flow[48, 60, 1] == 0.0      # on the patch
@@ -64,8 +66,8 @@ def test_moving_patch_flow_and_occlusion():
 def test_camera_change_changes_the_images_only():
     rng = np.random.default_rng(3)
     photo = _photo(rng)
-    a = real_images.homography_pair(photo, photo, np.random.default_rng(5), photometric=False)
-    b = real_images.homography_pair(photo, photo, np.random.default_rng(5), photometric=True)
+    a = real_checks.homography_pair(photo, photo, np.random.default_rng(5), photometric=False)
+    b = real_checks.homography_pair(photo, photo, np.random.default_rng(5), photometric=True)
     np.testing.assert_array_equal(a["flow"], b["flow"])
     np.testing.assert_array_equal(a["noc"], b["noc"])
     np.testing.assert_array_equal(a["frame_t"], b["frame_t"])
@@ -74,9 +76,9 @@ def test_camera_change_changes_the_images_only():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_random_homography_keeps_motion_moderate(seed):
-    g = real_images.random_homography(np.random.default_rng(seed), 300, 400)
+    g = real_checks.random_homography(np.random.default_rng(seed), 300, 400)
     ys, xs = np.mgrid[0:300:10, 0:400:10].astype(float)
-    tx, ty = real_images.apply_homography(g, xs, ys)
+    tx, ty = real_checks.apply_homography(g, xs, ys)
     mag = np.hypot(tx - xs, ty - ys)
     assert 0.5 < mag.mean() < 40.0
 
@@ -121,12 +123,12 @@ def test_default_working_size_beats_every_other_size_one_against_one():
 def test_shift_set_and_its_metrics_hand_case():
     """`shift_set`: every pair's flow is its shift; `shift_metrics`: a prediction with the horizontal right and
     the vertical at half its size scores gain 1 / 0.5 and EPE 0 / |dy| / 2 (the mean of 4 and 8 px: 3 px)."""
-    pairs = real_images.shift_set()
-    assert len(pairs) == 4 * len(real_images.SHIFTS)
+    pairs = real_checks.shift_set()
+    assert len(pairs) == 4 * len(real_checks.SHIFTS)
     for p in pairs:
         np.testing.assert_allclose(p["flow"].reshape(-1, 2).mean(0), p["shift"], atol=1e-6)
     flows = [p["flow"] * (np.array([1.0, 0.5]) if p["shift"][1] else 1.0) for p in pairs]
-    m = real_images.shift_metrics(flows, pairs)
+    m = real_checks.shift_metrics(flows, pairs)
     assert m["gain_horizontal"] == pytest.approx(1.0) and m["gain_vertical"] == pytest.approx(0.5)
     assert m["epe_horizontal"] == pytest.approx(0.0, abs=1e-6) and m["epe_vertical"] == pytest.approx(3.0)
 
@@ -135,8 +137,8 @@ def test_zoom_set_and_its_metrics_hand_case():
     """`zoom_set`: every pair's flow is (s - 1) (p - c) about the frame's centre c; `zoom_metrics`: a prediction
     that reads the expansion at 90 % and the contraction exactly scores gain 0.9 / 1, EPE 10 % of the mean flow
     length / 0."""
-    pairs = real_images.zoom_set()
-    assert len(pairs) == len(real_images.ZOOMS) * len(real_images.photos.HELDOUT_PHOTOS)
+    pairs = real_checks.zoom_set()
+    assert len(pairs) == len(real_checks.ZOOMS) * len(real_checks.photos.HELDOUT_PHOTOS)
     for p in pairs:
         h, w = p["flow"].shape[:2]
         ys, xs = np.mgrid[0:h, 0:w]
@@ -144,7 +146,7 @@ def test_zoom_set_and_its_metrics_hand_case():
         np.testing.assert_allclose(p["flow"][..., 0], (s - 1) * (xs - (w - 1) / 2), atol=1e-4)
         np.testing.assert_allclose(p["flow"][..., 1], (s - 1) * (ys - (h - 1) / 2), atol=1e-4)
     flows = [p["flow"] * (0.9 if p["zoom"] > 1 else 1.0) for p in pairs]
-    m = real_images.zoom_metrics(flows, pairs)
+    m = real_checks.zoom_metrics(flows, pairs)
     assert m["gain_expand"] == pytest.approx(0.9) and m["gain_contract"] == pytest.approx(1.0)
     expand = [p for p in pairs if p["zoom"] > 1]
     mean_len = np.mean([np.linalg.norm(p["flow"], axis=-1)[p["noc"]].mean() for p in expand])

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bridge_jax import configs, cycle, losses, setup, train_step
+from bridge_jax import configs, cycle, losses, recipe, setup, train_step
 from tests.scenes import gt_maps, translating_cycle
 
 H, W = 32, 48
@@ -191,7 +191,7 @@ def test_bad_values_are_one_error_naming_the_option(kw, match):
 
 
 def test_a_crop_the_model_cannot_run_is_one_config_error():
-    c = configs.load("demo:short")  # pwc_lite at 64x128: the default crop 32 leaves 0x64
+    c = recipe.single_run(configs.load("demo:short"))  # pwc_lite at 64x128: the default crop 32 leaves 0x64
     configs.override(c, ["loss.self_supervision=0.3"])
     with pytest.raises(setup.ConfigError, match=r"config.loss.self_supervision_crop=32: .* 0x64, not a working size "
                                                 r"of model pwc_lite.*e.g. 4"):

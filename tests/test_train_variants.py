@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bridge_jax import cycle, models, network, setup, train_step
+from bridge_jax import cycle, models, network, recipe, setup, train_step
 from bridge_jax.micro_batch import MicroBatchedStep
 from tests.train_helpers import H, W, REPO, enable_compilation_cache, plain_loss_and_grads
 
@@ -105,7 +105,7 @@ def _one_step(cfg, batch=1, micro_batch=0, seed=0):
 
 
 def _tiny(name):
-    cfg = _load(name).get_config("local") if name != "demo" else _load(name).get_config("short")
+    cfg = _load(name).get_config("local") if name != "demo" else recipe.single_run(_load(name).get_config("short"))
     if cfg.model.name != "pwcnet":
         cfg.model = models.model_config("resnet_md_tiny")
     cfg.height, cfg.width = H, W

@@ -11,8 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from bridge_jax import checkpointing, configs, inference, setup, train, zoo
-from bridge_jax.configs import demo as demo_config
+from bridge_jax import checkpointing, configs, inference, recipe, setup, train, zoo
 from bridge_jax.data import synthetic
 from tests.train_helpers import REPO
 
@@ -27,37 +26,29 @@ def _changed(recorded: dict, current: dict, prefix: str = "") -> list[str]:
     return out
 
 
-SHIPPED = {  # name -> (config argument of configs/demo.py, how to rebuild it)
-    "demo": ("finish", "retrain with `make demo`, set `init_from` in work/demo/train/config.json to the recipe's "
-                       "`work/demo/train_64x128`, and run `bridge-zoo build demo --from work/demo/train "
-                       "--earlier-stage demo=work/demo/train_64x128 --card work/demo_card.json`"),
-    "long": ("long,real,selfsup,motion,census,hires",
-             "retrain stage 1 with `bridge-train --config=demo:long,real --workdir=work/long`, stage 2 with "
-             "`bridge-train --config=demo:long,real,selfsup --workdir=work/long2`, stage 3 with `bridge-train "
-             "--config=demo:long,real,selfsup,motion --workdir=work/long3`, stage 4 with `bridge-train "
-             "--config=demo:long,real,selfsup,motion,census --workdir=work/long4`, stage 5 with `bridge-train "
-             "--config=demo:long,real,selfsup,motion,census,hires --workdir=work/long5`, run "
-             "experiments/real_images.py --models work/long5 --refine 1 --card work/long_card.json and "
-             "`bridge-zoo build long --from work/long5 --earlier-stage demo:long,real=work/long --earlier-stage "
-             "demo:long,real,selfsup=work/long2 --earlier-stage demo:long,real,selfsup,motion=work/long3 "
-             "--earlier-stage demo:long,real,selfsup,motion,census=work/long4 --card work/long_card.json` (or, with "
-             "only stage 5 retrained, `--after-shipped demo:long,real,selfsup,motion,census=long` before the old "
-             "long is overwritten)"),
+SHIPPED = {  # name -> (the recipe config, its stage whose config the shipped model's run recorded, how to rebuild)
+    "demo": ("demo", "finish", "retrain with `make demo` (the recipe trains in work/demo/train), then `bridge-zoo build "
+                               "demo --from work/demo/train --card work/demo_card.json`"),
+    "long": ("long:legacy", "hires",
+             "the shipped `long` came from the legacy chain's stages run by hand; its stages' settings live in "
+             "configs/long.py (`long:legacy`): a change there calls for retraining it"),
 }
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED))
 def test_shipped_model_matches_its_config(name):
     """When a shipped model's config changes, its weights must be regenerated (this test says how)."""
-    arg, how = SHIPPED[name]
+    spec, stage, how = SHIPPED[name]
     meta = zoo.info(name)
-    run = setup.parse(demo_config.get_config(arg), devices=jax.devices()[:1])
+    run = setup.parse(recipe.stage_config(configs.load(spec), stage), devices=jax.devices()[:1])
     assert meta["model"] == json.loads(json.dumps(run.model.model_json())), how
     # every setting the shipped run recorded still has that value (fields added since keep the old behaviour
-    # by default, so they do not call for retraining)
+    # by default, so they do not call for retraining); init_from names where the stage started on the machine
+    # that trained it (a recipe sets it to the previous stage's folder)
     recorded = dict(meta["config"])  # a run of an earlier release recorded the loop fields at the top level
     moved = {k: recorded.pop(k) for k in configs.MOVED_KEYS if k in recorded}
     recorded["loop"] = dict(recorded.get("loop", {}), **moved)
+    recorded.pop("init_from")
     assert _changed(recorded, json.loads(json.dumps(run.config_json))) == [], how
     assert (meta["height"], meta["width"]) == (run.height, run.width)
     data = (zoo.ZOO_DIR / f"{name}.npz").read_bytes()
@@ -155,7 +146,7 @@ def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
     disparity well below zero motion, and the numbers recorded when it was built are reproduced."""
     predictor = inference.load_predictor("demo", working_size="trained", refine=0, polish="none")  # as trained
     assert (predictor.height, predictor.width) == (128, 256)  # the second phase's size
-    run = setup.parse(demo_config.get_config("finish"), devices=jax.devices()[:1])
+    run = setup.parse(recipe.stage_config(configs.load("demo"), "finish"), devices=jax.devices()[:1])
     res, _ = train.validate(predictor, predictor.params, train.validation_frames(run), 4, picture=False)
     assert res["flow_epe_all"] < 0.6 * res["zero_flow_epe_all"], res
     assert res["disp_epe_all"] < 0.3 * res["zero_disp_epe_all"], res

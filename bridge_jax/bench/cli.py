@@ -64,7 +64,7 @@ import tempfile
 
 import jax
 
-from bridge_jax import cli, configs, inference
+from bridge_jax import cli, configs, inference, recipe
 from bridge_jax.bench import first, measure
 from bridge_jax.bench.device import device_peak
 from bridge_jax.bench.peer import PEER_DIR_ENV, PEER_PYTHON_ENV, run_peer
@@ -78,9 +78,10 @@ PROCESS_WHATS = ("first_prediction", "first_step")
 
 
 def load_config(spec: str, overrides=()):
-    """A training config by name or path (`configs.load`) with `--set KEY=VALUE` overrides."""
+    """A training config by name or path (`configs.load`; of a recipe, its first stage's) with `--set KEY=VALUE`
+    overrides."""
     try:
-        config = configs.load(spec)
+        config = recipe.single_run(configs.load(spec))
     except ValueError as e:
         raise BenchError(str(e)) from e
     try:

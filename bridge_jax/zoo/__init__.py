@@ -62,14 +62,14 @@ class Entry:
 
 _ENTRIES: dict[str, Entry] = {
     "demo": Entry("demo", "shipped", "pwc_lite (374 k params) trained by `make demo` on the built-in synthetic "
-                  "stereo video (the `demo` config: 1,750 steps at 64x128, then `demo:finish`: 300 steps at "
+                  "stereo video (the `demo` recipe: 1,750 steps at 64x128, then its `finish` stage: 300 steps at "
                   "128x256); a starting point, not a KITTI model; by default at 192x384 with one "
                   "--refine pass and --polish photometric"),
     "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
                   "at 128x256, then 256x512, on the synthetic "
                   "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
                   "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
-                  "(config `demo:long,real,selfsup,motion,census,hires`, five stages: `bridge-zoo show long`); for "
+                  "(five stages run by hand, the recipe `long:legacy`: `bridge-zoo show long`); for "
                   "your own images; by default at --working-size native with one --refine pass, --symmetry "
                   "flips and --polish photometric"),
     **{f"upstream_ver_{v}": Entry(
@@ -216,35 +216,97 @@ def trained_size(spec: str | os.PathLike) -> Optional[tuple[int, int]]:
     return None if meta is None else (int(meta["height"]), int(meta["width"]))
 
 
-def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]]:
-    """The working size a shipped model's card recommends, chosen by its real-image checks: "native", "trained"
-    or a fixed (H, W) (the card's "HxW"); None (no card entry, or not a shipped model)."""
-    meta = _shipped_info(spec)
-    value = None if meta is None else meta.get("default_working_size")
-    return None if value is None else cli.parse_working_size(value)
+LINEAGE_DEPTH = 16  # at most this many init_from links are followed back to a shipped model
+
+
+def _recorded_init_from(spec: str | os.PathLike, seen: set[str]) -> Optional[str]:
+    """The "init_from" recorded in the config.json of the training workdir that `spec` stands for (a recipe
+    workdir: its latest stage, `checkpointing.model_dir`; a step dir `checkpoints/<step>`: its workdir); None
+    when there is none (random init, a params-only dir, no such path, unreadable) or that workdir is in `seen`
+    (a cycle), which it is added to."""
+    from bridge_jax import checkpointing  # heavy import (jax) only for paths
+
+    try:
+        p = checkpointing.model_dir(spec)
+    except (ValueError, OSError):  # a recipe workdir without a checkpoint yet: reading its params says so
+        return None
+    if p.parent.name == checkpointing.CHECKPOINTS_DIR and p.name.isdigit():
+        p = p.parent.parent
+    key = os.path.realpath(p)
+    if key in seen:
+        return None
+    seen.add(key)
+    try:
+        value = json.loads((p / checkpointing.CONFIG_JSON).read_text()).get("init_from")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) and value else None
+
+
+def card_lineage(spec: str | os.PathLike) -> list[str]:
+    """How `spec` descends from a shipped model, whose card's recommended test-time settings then stand for it:
+    [spec, what it was initialised from, ..., the shipped name] — [name] for a shipped name itself; a checkpoint
+    path (or a local entry's folder) is followed through its workdir's recorded `init_from` (paths as recorded,
+    at most `LINEAGE_DEPTH` links). [] when the chain ends elsewhere: random init, a params-only dir, an unknown
+    name, a missing path, a cycle."""
+    chain: list[str] = []
+    seen: set[str] = set()
+    current: Optional[str] = os.fspath(spec)
+    for _ in range(LINEAGE_DEPTH + 1):
+        if current is None:
+            return []
+        chain.append(current)
+        where: str | os.PathLike = current
+        if is_name(current):
+            e = _ENTRIES.get(current)
+            if e is None:
+                return []
+            if e.kind == "shipped":
+                return chain
+            where = e.local_path()
+        current = _recorded_init_from(where, seen)
+    return []
+
+
+def defaults_source(spec: str | os.PathLike) -> Optional[str]:
+    """The shipped model whose card gives `spec`'s default test-time settings (`default_working_size`,
+    `default_refine`, `default_symmetry`, `default_polish`): `spec` itself when it names one, the one a
+    checkpoint was fine-tuned from (`card_lineage`), else None (the plain defaults)."""
+    chain = card_lineage(spec)
+    return chain[-1] if chain else None
 
 
 def _card_value(spec: str | os.PathLike, key: str, fallback: Any) -> Any:
-    """A shipped model's card entry `key`, or `fallback` (no such entry, or not a shipped model)."""
-    meta = _shipped_info(spec)
+    """Card entry `key` of the shipped model `spec` is or descends from (`defaults_source`), or `fallback` (no
+    such entry, or no shipped model in its lineage)."""
+    source = defaults_source(spec)
+    meta = None if source is None else _shipped_info(source)
     return fallback if meta is None else meta.get(key, fallback)
 
 
+def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]]:
+    """The working size the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
+    recommends, chosen by its real-image checks: "native", "trained" or a fixed (H, W) (the card's "HxW"); None
+    (no card entry, or no shipped model in its lineage)."""
+    value = _card_value(spec, "default_working_size", None)
+    return None if value is None else cli.parse_working_size(value)
+
+
 def default_refine(spec: str | os.PathLike) -> int:
-    """The test-time refinement passes a shipped model's card recommends (`inference.refine_maps`; chosen by
-    its real-image checks), or 0 (no card entry, or not a shipped model)."""
+    """The test-time refinement passes the card of the shipped model `spec` is or was fine-tuned from
+    recommends (`inference.refine_maps`; chosen by its real-image checks), or 0."""
     return int(_card_value(spec, "default_refine", 0))
 
 
 def default_symmetry(spec: str | os.PathLike) -> str:
-    """The test-time symmetry averaging a shipped model's card recommends (`inference.symmetric_estimate`;
-    chosen by its real-image checks), or "none" (no card entry, or not a shipped model)."""
+    """The test-time symmetry averaging the card of the shipped model `spec` is or was fine-tuned from
+    recommends (`inference.symmetric_estimate`; chosen by its real-image checks), or "none"."""
     return str(_card_value(spec, "default_symmetry", "none"))
 
 
 def default_polish(spec: str | os.PathLike) -> str:
-    """The test-time polish a shipped model's card recommends (`bridge_jax.polish`; chosen by its real-image
-    checks), or "none" (no card entry, or not a shipped model)."""
+    """The test-time polish the card of the shipped model `spec` is or was fine-tuned from recommends
+    (`bridge_jax.polish`; chosen by its real-image checks), or "none"."""
     return str(_card_value(spec, "default_polish", "none"))
 
 
@@ -309,7 +371,7 @@ def _finished_run(workdir: str | os.PathLike, what: str) -> tuple[dict, int]:
     from bridge_jax import checkpointing  # heavy import only for maintainers
 
     step_dir = checkpointing.find_train_step_dir(workdir)
-    cfg_path = Path(workdir) / checkpointing.CONFIG_JSON
+    cfg_path = checkpointing.model_dir(workdir) / checkpointing.CONFIG_JSON  # a recipe: its last stage's
     if step_dir is None or not cfg_path.is_file():
         raise ValueError(f"{what}: {workdir} is not a finished training workdir (expected "
                          f"{checkpointing.CONFIG_JSON} and a checkpoint under checkpoints/)")
@@ -347,11 +409,35 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     stages += [stage_summary(c, d, machine) for c, d in earlier_stages]
     if stages:
         meta["earlier_stages"] = stages
+    meta.update(recipe_summary(workdir, machine))
     meta.update(card or {})
     npz, js = _shipped_files(name)
     files.write_bytes(npz, data)
     files.write_json(js, meta)
     return npz
+
+
+def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) -> dict:
+    """For a recipe workdir (`bridge_jax.recipe`): {"rebuild": the one command that trains it again from nothing,
+    "recipe": [{"stage", "steps", "seconds", "height", "width", "global_batch", "lr"} per stage], and
+    "training": {"total_seconds": the stages' seconds added up, "machine"}}; {} for any other workdir."""
+    from bridge_jax import recipe  # heavy import only for maintainers
+
+    record = recipe.read_record(os.fspath(workdir))
+    if record is None:
+        return {}
+    stages = []
+    for name in record["stages"]:
+        done = recipe.finished(os.fspath(workdir), name)
+        if done is None:
+            raise ValueError(f"--from {workdir}: stage {name} of the recipe has not finished")
+        cfg = record.get("configs", {}).get(name, {})
+        stages.append({"stage": name, "steps": done["steps"], "seconds": done["seconds"],
+                       **{k: cfg.get(k) for k in ("height", "width", "global_batch", "lr")}})
+    command = f"bridge-train --config={record.get('config_name') or '?'} --workdir=WORKDIR"
+    return {"rebuild": command, "recipe": stages,
+            "training": dict(training_summary(workdir), machine=machine or _this_machine(),
+                             total_seconds=round(sum(s["seconds"] for s in stages), 1))}
 
 
 def _this_machine() -> str:
@@ -369,6 +455,11 @@ def card_lines(name: str) -> list[str]:
              f"  data: {cfg.get('data', {}).get('source', '?')} scenes "
              f"{cfg.get('data', {}).get('synthetic_scene', 'demo')}; lr {cfg.get('lr')}, "
              f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
+    if meta.get("rebuild"):
+        lines.append(f"  rebuild: {meta['rebuild']}")
+    for stage in meta.get("recipe") or []:  # the stages of the recipe that trained it
+        lines.append(f"  stage {stage['stage']}: {stage['steps']} steps at {stage.get('height')}x{stage.get('width')}, "
+                     f"batch {stage.get('global_batch')}, lr {stage.get('lr')}, in {stage['seconds'] / 3600:.2f} h")
     for i, stage in enumerate(meta.get("earlier_stages") or [], 1):  # runs whose weights this one started from
         lines.append(f"  stage {i}: --config={stage.get('config', '?')}, {stage.get('steps', '?')} steps from "
                      f"{stage.get('init_from') or 'scratch'}, lr {stage.get('lr')}, in "
@@ -376,8 +467,10 @@ def card_lines(name: str) -> list[str]:
     t = meta.get("training") or {}
     if t:
         hours = t.get("seconds", 0) / 3600
+        total = (f"; the whole recipe {t['total_seconds'] / 3600:.2f} h" if t.get("total_seconds") is not None
+                 else "")
         lines.append(f"  trained: steps {t.get('first_step', '?')}-{t.get('last_step', '?')} in {hours:.2f} h on "
-                     f"{t.get('machine', '?')}")
+                     f"{t.get('machine', '?')}{total}")
     val = meta.get("validation") or {}
     if val:
         lines.append("  validation (synthetic, trained size): " + ", ".join(
