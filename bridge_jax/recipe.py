@@ -13,7 +13,8 @@ A stage's config is the base with its overrides applied (`stage_config`); it may
 (working size, batch, lr and its schedule, data scene, loss switches, augmentation, steps, seed), but not
 `init_from` after the first stage: stage k > 0 always starts from stage k - 1's final params. On the command line
 `--config.KEY=VALUE` sets the base *and* every stage that sets KEY, so the command line wins everywhere
-(`override_everywhere`); `--config.stage_overrides.NAME.KEY=VALUE` sets one stage only (any field of the base).
+(`override_everywhere`); `--config.stage_overrides.NAME.KEY=VALUE` sets one stage only (any field of the base); `--config.stages=a,b` keeps
+only those stages (the first one kept starts from the base's `init_from`, random init unless set).
 
 Optimiser state at a stage boundary: a stage starts with fresh Adam moments and its own step counter, so its lr
 schedule (`lr`, `lr_milestones`, `loop.steps_per_epoch`) counts from its own first step. The stages change what
@@ -160,6 +161,9 @@ def override_everywhere(config: ml_collections.ConfigDict, items: Sequence[str])
     names = stage_names(config)
     for item in items:
         key, eq, text = item.partition("=")
+        if key == "stages" and eq:
+            names = select_stages(config, text)
+            continue
         if key.startswith("stage_overrides.") and eq:
             parts = key.split(".", 2)
             if len(parts) < 3 or parts[1] not in names or not parts[2]:
@@ -177,6 +181,28 @@ def override_everywhere(config: ml_collections.ConfigDict, items: Sequence[str])
             if key in stage_settings(config, name):
                 _set_stage(config, name, key, _get(config, key))
     return config
+
+
+def select_stages(config: ml_collections.ConfigDict, text: str) -> tuple[str, ...]:
+    """`--config.stages=a,b`: keep only the recipe's stages `a`, `b` (a comma-separated list, in the recipe's
+    order; "(a, b)" is read the same), dropping the others and their overrides, e.g. `stages=coarse` to time or
+    inspect one stage; the first stage kept starts from the base's `init_from`. ValueError naming the item when a name is not one of the recipe's stages."""
+    names = stage_names(config)
+    chosen = [n.strip().strip("'\"") for n in text.strip().strip("()[]").split(",")]
+    chosen = [n for n in chosen if n]
+    unknown = [n for n in chosen if n not in names]
+    if not chosen or unknown:
+        raise ValueError(f"'stages={text}': expected a comma-separated list of this recipe's stages "
+                         f"{list(names)}" + (f"; {unknown} are not among them" if unknown else ""))
+    if len(set(chosen)) != len(chosen):
+        raise ValueError(f"'stages={text}': names a stage twice")
+    kept = tuple(n for n in names if n in chosen)
+    with config.unlocked():
+        config.stages = kept
+        for name in names:
+            if name not in kept and name in config.get("stage_overrides", {}):
+                del config.stage_overrides[name]
+    return kept
 
 
 def _quiet(old: str, new: str) -> None:  # noqa: ARG001  (configs.override already noted a moved key once)

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 import pytest
 
-from bridge_jax import bench, predict, setup, train
+from bridge_jax import bench, predict, recipe, setup, train
 from bridge_jax.bench import cli, first
 
 SLEEP_S = 0.3
@@ -125,7 +125,9 @@ def test_commands_parse_with_their_own_clis(tmp_path):
     rest, items = train.split_config_overrides(cmd[3:])
     args = train.build_parser().parse_args(rest)
     assert args.config == "demo" and args.workdir == str(tmp_path / "wd")
-    run = setup.parse(train.load_config(args.config, items), devices=jax.devices()[:1], num_processes=1)
+    config = train.load_config(args.config, items)
+    assert config.stages == ("coarse",) and set(config.stage_overrides.keys()) <= {"coarse"}  # the demo's first stage
+    run = setup.parse(recipe.single_run(config), devices=jax.devices()[:1], num_processes=1)
     assert (run.height, run.width, run.model.dtype) == (128, 256, "bfloat16")
     steps = first.FIRST_STEP_STEPS
     assert run.loop.num_train_steps == steps and run.loop.checkpoint_every > steps

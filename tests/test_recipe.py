@@ -64,6 +64,23 @@ def test_stage_names_are_checked():
         setup.parse(_toy_recipe())
 
 
+def test_the_command_line_can_keep_some_stages():
+    c = _toy_recipe()
+    recipe.override_everywhere(c, ["stages=second", "loop.num_train_steps=4"])
+    assert c.stages == ("second",) and set(c.stage_overrides.keys()) == {"second"}
+    only = recipe.stage_config(c, "second")
+    assert (only.lr, only.height, only.loop.num_train_steps) == (2e-4, 128, 4)
+    c = _toy_recipe()
+    recipe.override_everywhere(c, ["stages=(second, first)"])  # the recipe's order is kept
+    assert c.stages == ("first", "second")
+    for bad, msg in (("stages=third", "\\['third'\\] are not among them"), ("stages=first,first", "twice"),
+                     ("stages=", "comma-separated list")):
+        with pytest.raises(ValueError, match=msg):
+            recipe.override_everywhere(_toy_recipe(), [bad])
+    with pytest.raises(setup.ConfigError, match="--config.stages=nope: .*\\['coarse', 'finish'\\]"):
+        train.load_config("demo", ["stages=nope"])
+
+
 def test_only_the_first_stage_may_set_init_from(tmp_path):
     c = tiny_config()
     c.stages = ("a", "b")

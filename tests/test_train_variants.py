@@ -37,6 +37,10 @@ def test_config_builds_and_documents_its_command_line(name):
     mod = _load(name)
     assert f"bridge_jax/configs/{name}.py" in mod.__doc__ or (name == "demo" and "bridge-demo" in mod.__doc__)
     cfg = mod.get_config()
+    if recipe.is_recipe(cfg):  # the demo: every stage is a config of its own; the checks below use the first
+        for stage in recipe.stage_names(cfg)[1:]:
+            setup.parse(recipe.stage_config(cfg, stage), devices=jax.devices()[:1])
+        cfg = recipe.single_run(cfg)
     run = setup.parse(cfg, devices=jax.devices()[:1])
     if cfg.global_batch % 2 == 0:
         setup.parse(cfg, devices=jax.devices()[:2])

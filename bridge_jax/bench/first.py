@@ -170,10 +170,25 @@ def measure_first_prediction(args) -> dict:
                 repeats=int(args.repeats), **rec)
 
 
+def _first_stage(config: str) -> str | None:
+    """The first stage's name when `config` names a recipe, else None (and None when it does not load: the
+    training command then says what is wrong with it)."""
+    from bridge_jax import configs, recipe
+    try:
+        cfg = configs.load(config)
+        return recipe.stage_names(cfg)[0] if recipe.is_recipe(cfg) else None
+    except Exception:  # noqa: BLE001
+        return None
+
+
 def train_command(workdir: str, config: str, height: int, width: int, *, steps: int = FIRST_STEP_STEPS,
                   extra: tuple[str, ...] = ()) -> list[str]:
     """A short training run: `steps` steps, a metrics line every step, no validation, no pictures, no periodic
-    checkpoint (the trainer still writes one at the end), no progress bar."""
+    checkpoint (the trainer still writes one at the end), no progress bar. A recipe config (the demo's) runs its
+    first stage only (`--config.stages=NAME`): the first step of what the command trains first."""
+    first_stage = _first_stage(config)
+    if first_stage:
+        extra = (f"--config.stages={first_stage}", *extra)
     return [sys.executable, "-m", "bridge_jax.train", f"--config={config}", f"--config.height={height}",
             f"--config.width={width}", "--workdir", workdir, f"--config.loop.num_train_steps={steps}",
             f"--config.loop.checkpoint_every={steps + 1}", "--config.loop.eval_every=-1",
