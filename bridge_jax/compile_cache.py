@@ -13,12 +13,28 @@ compiled network whole in the same folder (`executable_cache`, `*-exec-cache` fi
 neither traces nor lowers them. The folder is trimmed to `MAX_CACHE_BYTES` at start-up (least recently used
 entries first). A folder that cannot be written (a read-only home) is one warning, and
 the command runs without a cache. `bridge-bench` never calls `enable`: it measures compile times.
+
+What a cache entry holds is machine code that the next process runs, so nothing is trusted as found:
+- every entry (JAX's own and bridge_jax's `*-exec-cache`) is *sealed*: a header and a sha256 over the entry's
+  key and bytes (`seal` / `unseal`), checked before anything is deserialised. An entry that fails (flipped bytes,
+  a truncated write, an entry of another format, one renamed to another key) is removed, with one warning line,
+  and the program compiled and written again. JAX's entries are sealed by a thin layer over JAX's own file
+  cache (`_CheckedCache`), so a process that uses JAX's cache through bridge_jax only ever reads sealed entries.
+- a folder that belongs to another user or that other users may write is refused (one line, the command runs
+  without a cache: `folder_problem`), and an entry file that belongs to another user is never read: an entry
+  planted there would run as the next user's code.
+- nothing in the folder is unpickled: the compiled-program entries are a JSON header and XLA's serialised
+  executable (`executable_cache`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hashlib
+import hmac
 import os
+import stat
 import tempfile
 import time
 import warnings
@@ -36,6 +52,9 @@ alternating pairs, medians; 0.5 s was the threshold before)."""
 MAX_CACHE_BYTES = 2 * 2**30
 """The folder is trimmed to this size at start-up. (JAX's own `jax_compilation_cache_max_size` evicts on every
 write but needs the `filelock` package, which bridge_jax does not depend on.)"""
+STALE_TEMP_S = 3600.0
+"""A temporary entry file (`.NAME.tmp-*`, written then renamed) older than this belongs to a killed write and
+is removed by `trim`."""
 OPTION_HELP = ("persistent XLA compilation cache folder, so that a later run skips most of the compile: 'auto' = "
                f"${ENV} if set, else $XDG_CACHE_HOME/bridge_jax/xla, else ~/.cache/bridge_jax/xla; '' = off "
                "(JAX_COMPILATION_CACHE_DIR, if set, wins)")
@@ -76,17 +95,29 @@ def enable(path: str = "auto", workdir: str | None = None, option: str = "--comp
     Call it before the first compilation: JAX opens the cache once, at the process's first compile that has a
     cache folder, and keeps it. A folder that cannot be created or written warns once and leaves the cache off.
     """
+    install_entry_checks()
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return os.environ["JAX_COMPILATION_CACHE_DIR"]
+        folder = os.environ["JAX_COMPILATION_CACHE_DIR"]
+        problem = folder_problem(folder) if os.path.isdir(folder) else None
+        if problem:
+            jax.config.update("jax_compilation_cache_dir", None)
+            warnings.warn(f"compilation cache {folder} (JAX_COMPILATION_CACHE_DIR): {problem}; running without it",
+                          CacheWarning, stacklevel=2)
+            return None
+        return folder
     folder = resolve(path, workdir, option)
     if folder is None:
         return None
     try:
-        os.makedirs(folder, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):  # writable? (a read-only home passes makedirs of an existing dir)
-            pass
+        os.makedirs(folder, mode=0o700, exist_ok=True)
+        problem = folder_problem(folder)
+        if not problem:
+            with tempfile.TemporaryFile(dir=folder):  # writable? (a read-only home passes makedirs of an old dir)
+                pass
     except OSError as e:
-        warnings.warn(f"compilation cache {folder}: {e.strerror or e}; running without it (set {option}='' or "
+        problem = e.strerror or str(e)
+    if problem:
+        warnings.warn(f"compilation cache {folder}: {problem}; running without it (set {option}='' or "
                       f"{ENV}='' to silence this)", CacheWarning, stacklevel=2)
         return None
     trim(folder, MAX_CACHE_BYTES)
@@ -95,14 +126,165 @@ def enable(path: str = "auto", workdir: str | None = None, option: str = "--comp
     return folder
 
 
+def folder_problem(folder: str) -> str | None:
+    """Why `folder` must not hold a cache, or None: it belongs to another user, or users other than its owner may
+    write it (an entry planted there would run as code in the next process that loads it). OSError when it
+    cannot be read."""
+    st = os.stat(folder)
+    if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
+        return f"it belongs to another user (uid {st.st_uid}; you are uid {os.geteuid()})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return (f"users other than its owner may write it (mode {stat.S_IMODE(st.st_mode):o}; "
+                f"`chmod go-w {folder}` makes it usable)")
+    return None
+
+
+def _owned_by_another_user(st: os.stat_result) -> bool:
+    return hasattr(os, "geteuid") and st.st_uid != os.geteuid()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Sealed entries: a header and a checksum of key and bytes, checked before anything is deserialised
+# ----------------------------------------------------------------------------------------------------------
+
+ENTRY_MAGIC = b"bridge_jax cache entry v1\n"
+"""The first bytes of every sealed entry; a file without them (another format, JAX's own unsealed entry,
+garbage) is not an entry."""
+_DIGEST_BYTES = 32
+
+
+class CacheEntryError(ValueError):
+    """A cache entry that must not be used: not sealed, damaged, or sealed for another key."""
+
+
+def _digest(key: str, body: bytes) -> bytes:
+    h = hashlib.sha256(b"key\0" + key.encode() + b"\0")
+    h.update(body)
+    return h.digest()
+
+
+def seal(key: str, body: bytes) -> bytes:
+    """The bytes of a cache entry for `key` holding `body`: `ENTRY_MAGIC`, sha256 over the key and the body,
+    the body."""
+    return ENTRY_MAGIC + _digest(key, body) + body
+
+
+def unseal(key: str, data: bytes) -> bytes:
+    """The body of the sealed entry `data` of `key`; CacheEntryError saying what is wrong when it is not a
+    sealed entry, is damaged or truncated, or was sealed for another key (a file renamed or copied)."""
+    if not data.startswith(ENTRY_MAGIC):
+        raise CacheEntryError("not a sealed bridge_jax cache entry (another format, or damaged at its start)")
+    head = len(ENTRY_MAGIC)
+    digest, body = data[head:head + _DIGEST_BYTES], data[head + _DIGEST_BYTES:]
+    if len(digest) != _DIGEST_BYTES or not hmac.compare_digest(digest, _digest(key, body)):
+        raise CacheEntryError("its checksum does not match its key and bytes (damaged, truncated or renamed)")
+    return body
+
+
+def read_entry(path: str, key: str) -> bytes | None:
+    """The body of the sealed entry file `path` of `key`; None when there is none. An entry that fails its check
+    is removed (so that the program is compiled and written again) with one warning line; a file that belongs
+    to another user is left alone and not read (one warning line)."""
+    try:
+        with open(path, "rb") as f:
+            st = os.fstat(f.fileno())
+            if _owned_by_another_user(st):
+                warnings.warn(f"compilation cache entry {path} belongs to another user (uid {st.st_uid}); not "
+                              "reading it, compiling instead", CacheWarning, stacklevel=2)
+                return None
+            data = f.read()
+    except FileNotFoundError:
+        return None
+    except OSError as e:
+        warnings.warn(f"compilation cache entry {path}: {e.strerror or e}; compiling instead", CacheWarning,
+                      stacklevel=2)
+        return None
+    try:
+        return unseal(key, data)
+    except CacheEntryError as e:
+        discard_entry(path, str(e))
+        return None
+
+
+def discard_entry(path: str, why: str) -> None:
+    """Removes the unusable entry `path` (one warning line saying `why`): the next compile writes it again."""
+    warnings.warn(f"compilation cache entry {os.path.basename(path)}: {why}; removed, compiling instead",
+                  CacheWarning, stacklevel=3)
+    try:
+        os.remove(path)
+    except OSError:
+        pass
+
+
+class _CheckedCache:
+    """JAX's file cache with sealed entries: `put` seals what JAX writes, `get` hands JAX only entries whose
+    seal checks (`read_entry`), so XLA never deserialises damaged bytes, and an entry that fails is removed
+    before JAX's `put` (which never overwrites an existing file) writes the new one."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.path = getattr(inner, "path", None)
+
+    def _file(self, key: str) -> str:
+        return os.path.join(str(self.path), f"{key}-cache")
+
+    def get(self, key: str) -> bytes | None:
+        if self.path is None:
+            return None
+        return read_entry(self._file(key), key)
+
+    def put(self, key: str, value: bytes) -> None:
+        self.inner.put(key, seal(key, value))
+
+    def __getattr__(self, name):  # anything else JAX asks of its cache object
+        return getattr(self.inner, name)
+
+
+_CHECKS_INSTALLED = False
+
+
+def install_entry_checks() -> None:
+    """Seals JAX's own compilation-cache entries in this process (`_CheckedCache` over the file cache JAX opens
+    at its first compile with a cache folder). Idempotent. Where JAX's internals differ from what this expects
+    (another JAX release), nothing is changed and JAX's cache works as JAX made it."""
+    global _CHECKS_INSTALLED
+    if _CHECKS_INSTALLED:
+        return
+    try:
+        from jax._src import compilation_cache as jax_cache
+        opener = jax_cache.get_file_cache
+    except (ImportError, AttributeError):
+        return
+
+    def checked_file_cache(path):
+        got = opener(path)
+        if got is None:
+            return None
+        cache, where = got
+        return _CheckedCache(cache), where
+
+    jax_cache.get_file_cache = checked_file_cache
+    opened = getattr(jax_cache, "_cache", None)
+    if opened is not None and not isinstance(opened, _CheckedCache):
+        jax_cache._cache = _CheckedCache(opened)  # a cache JAX opened before bridge_jax was imported
+    _CHECKS_INSTALLED = True
+
+
 def trim(folder: str, max_bytes: int) -> int:
     """Deletes the least recently used cache entries (JAX's `*-cache` files) of `folder` until the rest holds
-    at most `max_bytes`; returns how many were deleted. Errors (an entry another process just removed) are
+    at most `max_bytes`, and the temporary files of writes killed more than `STALE_TEMP_S` ago; returns how many
+    entries were deleted. Errors (an entry another process just removed) are
     skipped: trimming is housekeeping, never a reason to fail."""
-    entries = []
+    entries, now = [], time.time()
     try:
         with os.scandir(folder) as it:
             for e in it:
+                if e.name.startswith(".") and ".tmp-" in e.name and e.is_file(follow_symlinks=False):
+                    # the temporary file of a write that was killed (a write in flight takes seconds)
+                    with contextlib.suppress(OSError):
+                        if now - e.stat(follow_symlinks=False).st_mtime > STALE_TEMP_S:
+                            os.remove(e.path)
+                    continue
                 if e.name.endswith("-cache") and e.is_file(follow_symlinks=False):
                     st = e.stat(follow_symlinks=False)
                     entries.append((max(st.st_atime, st.st_mtime), st.st_size, e.path))
@@ -211,3 +393,8 @@ class CompileClock:
     def __exit__(self, *exc) -> bool:
         _CLOCKS.remove(self)
         return False
+
+
+# JAX's own entries are sealed in every process that imports bridge_jax (commands and library callers alike), so
+# that no process of ours writes an entry another of ours would refuse.
+install_entry_checks()

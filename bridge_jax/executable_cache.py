@@ -28,22 +28,30 @@ import functools
 import hashlib
 import json
 import os
-import pickle
 import warnings
 from typing import Callable, Optional, Sequence
 
 import jax
-from jax.experimental import serialize_executable
+import jax.numpy as jnp
+from jax._src import tree_util
+from jax._src.interpreters import pxla
+from jax._src.layout import Layout
+from jax._src.lib import xla_client
+from jax._src.linear_util import DebugInfo
+from jax.sharding import SingleDeviceSharding
 
 from bridge_jax import compile_cache, files
 from bridge_jax.models import layers
 
 SUFFIX = "-exec-cache"
 """File name ending of an entry (the compilation cache's trimming keeps every `*-cache` file under its cap)."""
-FORMAT = 1
-"""Version of the entry layout; entries of another version are ignored (and overwritten)."""
+FORMAT = 2
+"""Version of the entry layout (2: sealed JSON header and executable; 1 was a pickle); entries of another version
+are removed and made again."""
 ENV_PREFIXES = ("XLA_", "JAX_", "BRIDGE_JAX_")
 """Environment variables that can change the compiled program: they are part of the key."""
+FOLDER_VARS = ("BRIDGE_JAX_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR")
+"""Environment variables naming a folder: their real path is in the key (`cache/` and `cache` are one folder)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -92,7 +100,8 @@ def entry_key(config: dict, args) -> str:
     """The entry key of a program: hex sha256 over the source fingerprint, `config`, the arguments' tree
     structure, shapes, dtypes and shardings (static arguments by value), the devices, the CPU model and features
     (`cpu_signature`), and the environment (`ENV_PREFIXES`)."""
-    env = {k: v for k, v in sorted(os.environ.items()) if k.startswith(ENV_PREFIXES)}
+    env = {k: (os.path.realpath(v) if k in FOLDER_VARS and v else v)  # the folder, not its spelling
+           for k, v in sorted(os.environ.items()) if k.startswith(ENV_PREFIXES)}
     parts = {"source": source_fingerprint(), "config": config, "env": env,
              "tree": str(jax.tree.structure(args)), "leaves": [_leaf_signature(x) for x in jax.tree.leaves(args)],
              "devices": [str(d.device_kind) for d in jax.devices()], "platform": jax.default_backend(),
@@ -104,42 +113,220 @@ def _devices(args) -> set:
     return {d for x in jax.tree.leaves(args) if hasattr(x, "sharding") for d in x.sharding.device_set}
 
 
-def _compile(fn: Callable, args):
+def _compile(fn: Callable, args, static_argnums: Sequence[int]):
     """Lower and compile `fn(*args)` the usual way (through XLA's persistent cache) -> (the compiled program,
-    its entry bytes, or None when it must not be kept: see the module doc). Raises ValueError for an
-    executable that refers to this process."""
+    its entry body (`_describe`), or None when it must not be kept: see the module doc). Raises ValueError for an
+    executable that refers to this process or that the entry format cannot describe."""
     with compile_cache.CompileClock() as clock:
         compiled = fn.lower(*args).compile()
     if clock.compiles != 1 or clock.cache_hits:
         return compiled, None  # loaded by XLA (from its cache or this process's): cannot be serialised again
+    return compiled, _describe(compiled, _dynamic(args, static_argnums))
+
+
+def _load(path: str, key: str, args, static_argnums: Sequence[int], device):
+    """The compiled program kept at `path` for `key`, loaded onto `device`, or None when there is none or it
+    cannot be used (`compile_cache.read_entry` checks its seal before anything reads it; an entry that fails to
+    load after that is removed too)."""
+    body = compile_cache.read_entry(path, key)
+    if body is None:
+        return None
+    try:
+        return _rebuild(body, _dynamic(args, static_argnums), device)
+    except Exception as e:  # noqa: BLE001 - an entry that cannot be loaded is re-made, never a reason to fail
+        compile_cache.discard_entry(path, f"cannot be loaded ({type(e).__name__}: {e})"[:300])
+        return None
+
+
+def _dynamic(args, static_argnums: Sequence[int]) -> tuple:
+    static = frozenset(static_argnums)
+    return tuple(x for i, x in enumerate(args) if i not in static)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The entry body: a JSON header describing the program's inputs and outputs, then XLA's serialised executable.
+# What JAX's own `serialize_executable` writes is a pickle (unpickling runs whatever it names); this writes only
+# data, and rebuilds JAX's objects from it with their constructors. Each entry is checked when written: the
+# header is read back and must rebuild objects equal to the compiled program's, so a JAX release whose objects
+# carry more than this format says gives "not kept" (compiled as usual), never a wrong program.
+# ----------------------------------------------------------------------------------------------------------
+
+def _aval_json(aval) -> dict:
+    return {"shape": [int(d) for d in aval.shape], "dtype": str(aval.dtype), "weak_type": bool(aval.weak_type)}
+
+
+def _aval(d: dict):
+    return jax.core.ShapedArray(tuple(d["shape"]), jnp.dtype(d["dtype"]), weak_type=d["weak_type"])
+
+
+def _layout_json(layout):
+    if layout is None:
+        return None
+    return {"major_to_minor": list(layout.major_to_minor), "tiling": [list(t) for t in layout.tiling],
+            "sub_byte_element_size_in_bits": int(layout.sub_byte_element_size_in_bits)}
+
+
+def _layout(d):
+    if d is None:
+        return None
+    return Layout(tuple(d["major_to_minor"]), tiling=tuple(tuple(t) for t in d["tiling"]),
+                  sub_byte_element_size_in_bits=d["sub_byte_element_size_in_bits"])
+
+
+def _strings(value):
+    return list(value) if isinstance(value, (tuple, list)) and all(isinstance(v, str) for v in value) else None
+
+
+def _node_table(tree) -> list:
+    """The (type, aux data) of every inner node of `tree`, in pre-order: what an output node may refer to."""
+    table = []
+
+    def walk(t):
+        if jax.tree_util.treedef_is_leaf(t) and t.num_leaves == 1:
+            return
+        table.append(t.node_data())
+        for child in t.children():
+            walk(child)
+
+    walk(tree)
+    return table
+
+
+def _same_node(a, b) -> bool:
+    try:
+        return a[0] is b[0] and bool(a[1] == b[1])
+    except Exception:  # noqa: BLE001 - aux data without a plain equality: not the same node
+        return False
+
+
+def _tree_json(tree, table: list):
+    """`tree` (a PyTreeDef) as JSON: "*" for a leaf, tuples / lists / dicts with string keys / None spelled out,
+    any other node (a registered class: optax states, flax's State) as a reference to the same node of the
+    input tree `table` (`_node_table`). ValueError for a node found in neither."""
+    if jax.tree_util.treedef_is_leaf(tree) and tree.num_leaves == 1:
+        return "*"
+    typ, aux = tree.node_data()
+    children = [_tree_json(c, table) for c in tree.children()]
+    if typ in (tuple, list) and aux is None:
+        return {"t": typ.__name__, "c": children}
+    if typ is type(None):
+        return {"t": "none"}
+    if typ is dict and all(isinstance(k, str) for k in aux):
+        return {"t": "dict", "k": list(aux), "c": children}
+    for i, node in enumerate(table):
+        if _same_node(node, (typ, aux)):
+            return {"r": i, "c": children}
+    raise ValueError(f"the output tree has a {typ.__name__} node that is not among the inputs")
+
+
+def _tree(d, table: list):
+    if d == "*":
+        return jax.tree.structure(0)
+    children = [_tree(c, table) for c in d.get("c", [])]
+    if "r" in d:
+        node = table[d["r"]]
+    else:
+        node = {"tuple": (tuple, None), "list": (list, None), "none": (type(None), None)}.get(d["t"])
+        if d["t"] == "dict":
+            node = (dict, list(d["k"]))
+    return jax.tree_util.PyTreeDef.from_node_data_and_children(tree_util.default_registry, node, children)
+
+
+def _describe(compiled, dyn_args) -> bytes:
+    """The entry body of `compiled` (see above); ValueError when the format cannot describe it exactly."""
     unloaded = getattr(compiled._executable, "_unloaded_executable", None)
     if unloaded is None:
         raise ValueError("this compiled program has no serialisable executable")
     if unloaded.host_callbacks or unloaded.keepalive or unloaded.ordered_effects or unloaded.unordered_effects:
         raise ValueError("the program has host callbacks or side effects, which refer to this process")
-    payload, in_tree, out_tree = serialize_executable.serialize(compiled)
-    return compiled, pickle.dumps({"format": FORMAT, "executable": payload, "in_tree": in_tree,
-                                   "out_tree": out_tree})
+    if (getattr(unloaded, "mut", None) is not None or getattr(unloaded, "pgle_profiler", None) is not None
+            or compiled._params.const_args or len(unloaded.device_list) != 1):
+        raise ValueError("the program carries state this entry format does not describe")
+    for sharding in (*unloaded.input_shardings, *unloaded.output_shardings):
+        if not isinstance(sharding, SingleDeviceSharding):
+            raise ValueError(f"a {type(sharding).__name__} this entry format does not describe")
+    args_info_flat, in_tree = jax.tree_util.tree_flatten(compiled.args_info)
+    if in_tree != jax.tree.structure((dyn_args, {})):
+        raise ValueError("the compiled program's inputs are not its arguments' tree")
+    info = unloaded.all_args_info
+    header = {
+        "format": FORMAT, "name": unloaded.name, "committed": bool(unloaded.committed),
+        "kept_var_idx": sorted(int(i) for i in unloaded.kept_var_idx),
+        "input_avals": [_aval_json(a) for a in unloaded.input_avals],
+        "output_avals": [_aval_json(a) for a in unloaded.output_avals],
+        "input_memory_kinds": [s.memory_kind for s in unloaded.input_shardings],
+        "output_memory_kinds": [s.memory_kind for s in unloaded.output_shardings],
+        "xla_in_layouts": [_layout_json(x) for x in unloaded.xla_in_layouts],
+        "dispatch_in_layouts": [_layout_json(x) for x in unloaded.dispatch_in_layouts],
+        "xla_out_layouts": [_layout_json(x) for x in unloaded.xla_out_layouts],
+        "all_args_info": None if info is None else {
+            "in_avals": [_aval_json(a) for a in info.in_avals],
+            "traced_for": info.debug_info.traced_for, "func_src_info": info.debug_info.func_src_info,
+            "arg_names": _strings(info.debug_info.arg_names),
+            "result_paths": _strings(info.debug_info.result_paths)},
+        "args_info": [[_aval_json(a._aval), bool(a.donated)] for a in args_info_flat],
+        "no_kwargs": bool(compiled._no_kwargs),
+        "out_tree": _tree_json(compiled.out_tree, _node_table(in_tree)),
+    }
+    text = json.dumps(header, sort_keys=True).encode()
+    executable = unloaded.xla_executable
+    code = (executable.client.serialize_executable(executable) if hasattr(executable, "client")
+            else executable.serialize())
+    body = len(text).to_bytes(8, "little") + text + code
+    # Read it back now: what this format cannot say must not come back as a different program next time.
+    device = next(iter(unloaded.device_list))
+    fields, args_info, out_tree = _fields(header, in_tree, device)
+    for name, value in fields.items():
+        if name != "all_args_info" and value != getattr(unloaded, name):
+            raise ValueError(f"the entry format does not reproduce the program's {name}")
+    if args_info != args_info_flat or out_tree != compiled.out_tree:
+        raise ValueError("the entry format does not reproduce the program's argument or output trees")
+    return body
 
 
-def _load(path: str, device):
-    """The compiled program kept at `path`, loaded onto `device`, or None when it is missing, of another format
-    or unreadable."""
-    try:
-        with open(path, "rb") as f:
-            entry = pickle.load(f)
-        if entry.get("format") != FORMAT:
-            return None
-        return serialize_executable.deserialize_and_load(entry["executable"], entry["in_tree"], entry["out_tree"],
-                                                         execution_devices=[device])
-    except FileNotFoundError:
-        return None
-    except Exception as e:  # noqa: BLE001 - a damaged entry is removed (and re-made), never a reason to fail
-        warnings.warn(f"ignoring an unreadable compiled-program cache entry {path} ({type(e).__name__}: {e}); "
-                      "compiling instead", stacklevel=3)
-        with contextlib.suppress(OSError):
-            os.remove(path)  # warn once: when XLA's own cache answers the compile, nothing is written over it
-        return None
+def _fields(header: dict, in_tree, device):
+    """The UnloadedMeshExecutable fields (without the executable), the flat ArgInfo list and the output tree
+    that `header` describes for inputs of tree `in_tree` on `device`."""
+    def shardings(kinds):
+        return [SingleDeviceSharding(device, memory_kind=k) for k in kinds]
+
+    info = header["all_args_info"]
+    all_args_info = None
+    if info is not None:
+        debug = DebugInfo(info["traced_for"], info["func_src_info"],
+                          None if info["arg_names"] is None else tuple(info["arg_names"]),
+                          None if info["result_paths"] is None else tuple(info["result_paths"]))
+        all_args_info = pxla.AllArgsInfo([_aval(a) for a in info["in_avals"]], debug)
+    fields = dict(
+        name=header["name"], committed=header["committed"], kept_var_idx=set(header["kept_var_idx"]),
+        input_avals=[_aval(a) for a in header["input_avals"]], output_avals=[_aval(a) for a in header["output_avals"]],
+        input_shardings=shardings(header["input_memory_kinds"]),
+        output_shardings=shardings(header["output_memory_kinds"]),
+        xla_in_layouts=[_layout(x) for x in header["xla_in_layouts"]],
+        dispatch_in_layouts=[_layout(x) for x in header["dispatch_in_layouts"]],
+        xla_out_layouts=[_layout(x) for x in header["xla_out_layouts"]],
+        unordered_effects=[], ordered_effects=[], keepalive=[], host_callbacks=[], mut=None, pgle_profiler=None,
+        all_args_info=all_args_info)
+    args_info = [jax.stages.ArgInfo(_aval(a), donated) for a, donated in header["args_info"]]
+    out_tree = _tree(header["out_tree"], _node_table(in_tree))
+    return fields, args_info, out_tree
+
+
+def _rebuild(body: bytes, dyn_args, device):
+    """The `jax.stages.Compiled` an entry body describes, for arguments `dyn_args` on `device`."""
+    size = int.from_bytes(body[:8], "little")
+    header = json.loads(body[8:8 + size])
+    if header.get("format") != FORMAT:
+        raise ValueError(f"an entry of format {header.get('format')}, not {FORMAT}")
+    in_tree = jax.tree.structure((dyn_args, {}))
+    fields, args_info, out_tree = _fields(header, in_tree, device)
+    backend = device.client
+    devices = xla_client.DeviceList((device,))
+    executable = backend.deserialize_executable(body[8 + size:], executable_devices=devices)
+    unloaded = pxla.UnloadedMeshExecutable(xla_executable=executable, device_list=devices, backend=backend,
+                                           **fields)
+    return jax.stages.Compiled(unloaded.load(), [], in_tree.unflatten(args_info), out_tree,
+                               no_kwargs=header["no_kwargs"])
 
 
 def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Optional[str],
@@ -169,12 +356,12 @@ def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Option
     stats["cache_key"] = key
     if announce:
         announce(os.path.exists(path))
-    compiled = _load(path, next(iter(devices)))
+    compiled = _load(path, key, args, static_argnums, next(iter(devices)))
     if compiled is not None:
         stats["cache"] = "hit"
     else:
         try:
-            compiled, entry = _compile(fn, args)
+            compiled, entry = _compile(fn, args, static_argnums)
         except Exception as e:  # noqa: BLE001 - a program whose executable cannot be kept is jitted as before
             stats.update(cache="off", cache_error=f"{type(e).__name__}: {e}"[:500])
             return fn
@@ -182,10 +369,11 @@ def cached_compile(fn: Callable, args: Sequence, *, config: dict, folder: Option
             stats.update(cache="off", cache_error="XLA loaded this program from its own cache; not kept again")
         else:
             try:
-                files.write_bytes(path, entry)
+                files.write_bytes(path, compile_cache.seal(key, entry))
                 stats["cache"] = "written"
             except OSError as e:  # a full or read-only folder: this run still uses what it just compiled
-                warnings.warn(f"could not write the compiled-program cache entry {path}: {e}", stacklevel=2)
+                warnings.warn(f"could not write the compiled-program cache entry {path}: {e.strerror or e}",
+                              compile_cache.CacheWarning, stacklevel=2)
                 stats["cache"] = "off"
     if not static_argnums:
         return compiled

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, executable_cache, geometry, models, zoo
+from bridge_jax import checkpointing, compile_cache, executable_cache, geometry, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 from bridge_jax.polish import POLISH_MODES, check_polish, component_mask, polish_maps
 
@@ -676,7 +676,7 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
                    compile_mode: str = "full", refine: Optional[int] = None,
                    refine_option: str = "refine", symmetry: Optional[str] = None, symmetry_option: str = "symmetry",
                    polish: Optional[str] = None, polish_option: str = "polish",
-                   executable_cache: Optional[str] = None) -> Predictor:
+                   executable_cache: Optional[str] = "auto") -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
@@ -692,12 +692,18 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     polish (`Predictor`); None = what the card recommends (`zoo.default_polish`), else "none". "The card":
     that of the shipped model `path` names or was fine-tuned from (`zoo.defaults_source`, which follows a
     checkpoint's recorded `init_from`).
-    `executable_cache`: see `Predictor`.
+    `executable_cache`: the folder where compiled networks are kept whole (see `Predictor`); "auto" (the
+    default) = the folder of JAX's persistent compilation cache, turning on the one the commands use first when
+    none is on (`compile_cache.enable("auto")`: $BRIDGE_JAX_CACHE_DIR, else ~/.cache/bridge_jax/xla), so that a
+    second Python process gets its first answer as fast as `bridge-predict` does; None = off (every process
+    compiles afresh).
     Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
     gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or
     `refine_option` for a refine count out of range, `symmetry_option` for an unknown symmetry, or
     `polish_option` for an unknown polish.
     """
+    if executable_cache == "auto":
+        executable_cache = compile_cache.active_dir() or compile_cache.enable("auto", option="executable_cache")
     refine = check_refine(zoo.default_refine(path) if refine is None else refine, refine_option)
     symmetry = check_symmetry(zoo.default_symmetry(path) if symmetry is None else symmetry, symmetry_option)
     polish = check_polish(zoo.default_polish(path) if polish is None else polish, polish_option)

@@ -172,16 +172,28 @@ def test_the_fingerprint_changes_with_any_module_of_the_package(tmp_path, monkey
         executable_cache.source_fingerprint.cache_clear()
 
 
-def test_a_damaged_entry_warns_and_is_made_again(plain, fresh_compiles, tmp_path):
+def test_a_damaged_train_step_entry_is_removed_and_made_again(plain, fresh_compiles, tmp_path):
+    """Bytes flipped inside the kept executable (where a damaged entry once loaded and silently changed the
+    train state, or crashed the process) are caught by the seal before XLA sees them: one warning, the entry
+    removed and written again, and the step's result is the plain step's."""
     state, step, batch, ref_state, ref_metrics = plain
-    key = executable_cache.entry_key({"lr": 1e-2}, (state, batch))
-    (tmp_path / (key + executable_cache.SUFFIX)).write_bytes(b"not a pickle")
+    kw = dict(config={"lr": 1e-2}, folder=str(tmp_path))
     stats = {}
-    with pytest.warns(UserWarning, match="unreadable compiled-program cache entry"):
-        fn = executable_cache.cached_compile(step, (_copy(state), batch), config={"lr": 1e-2},
-                                             folder=str(tmp_path), stats=stats)
-    assert stats["cache"] == "written"
-    _assert_same_step(fn(_copy(state), batch), (ref_state, ref_metrics))
+    executable_cache.cached_compile(step, (_copy(state), batch), stats=stats, **kw)
+    path = tmp_path / (stats["cache_key"] + executable_cache.SUFFIX)
+    good = path.read_bytes()
+    for offset in (len(good) // 2, len(good) - 5):  # inside the executable's bytes
+        damaged = bytearray(good)
+        for i in range(4):
+            damaged[offset + i] ^= 0x5A
+        path.write_bytes(bytes(damaged))
+        jax.clear_caches()
+        stats = {}
+        with pytest.warns(compile_cache.CacheWarning, match="checksum does not match.*removed, compiling instead"):
+            fn = executable_cache.cached_compile(step, (_copy(state), batch), stats=stats, **kw)
+        assert stats["cache"] == "written"
+        compile_cache.unseal(stats["cache_key"], path.read_bytes())  # a sound entry again
+        _assert_same_step(fn(_copy(state), batch), (ref_state, ref_metrics))
 
 
 def test_off_without_a_folder_and_for_a_state_on_several_devices(plain, tmp_path):
@@ -269,3 +281,38 @@ def test_the_predict_command_finds_its_kept_network_in_a_new_process(tmp_path):
         assert f"unreadable compiled-program cache entry {entry}" in stderr
         assert not entry.exists()  # removed: XLA's cache answers the compile now, so it is not written again
     np.testing.assert_array_equal(second, first)
+
+
+_LIBRARY_CHILD = """
+import sys, numpy as np
+from bridge_jax import compile_cache, inference
+pred = inference.load_predictor(sys.argv[1], height=64, width=128, refine=0, symmetry="none", polish="none")
+a = np.random.default_rng(0).random((64, 128, 3), dtype=np.float32)
+flow = pred.predict_pair(a, a[:, ::-1])
+print("FOLDER", compile_cache.active_dir())
+print("TRACES", pred.trace_count)
+print("FLOW", float(np.abs(flow).sum()))
+"""
+
+
+def test_the_library_uses_the_commands_cache_by_default(tiny_checkpoint, tmp_path):
+    """`load_predictor` with no cache argument, in two fresh Python processes: the first compiles and keeps the
+    network in the per-user folder (here $BRIDGE_JAX_CACHE_DIR), the second loads it without tracing and gives
+    the same flow."""
+    import subprocess
+    import sys
+    from tests.train_helpers import REPO
+    env = dict(os.environ, BRIDGE_JAX_CACHE_DIR=str(tmp_path / "user_cache"), PYTHONPATH=REPO)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+
+    def run():
+        done = subprocess.run([sys.executable, "-c", _LIBRARY_CHILD, tiny_checkpoint], env=env, capture_output=True,
+                              text=True, timeout=600, cwd=REPO)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return dict(line.split(" ", 1) for line in done.stdout.splitlines() if line[:1].isupper())
+
+    first, second = run(), run()
+    assert first["FOLDER"] == second["FOLDER"] == str(tmp_path / "user_cache")
+    assert int(first["TRACES"]) >= 1 and int(second["TRACES"]) == 0
+    assert first["FLOW"] == second["FLOW"]
+    assert any(name.endswith(executable_cache.SUFFIX) for name in os.listdir(tmp_path / "user_cache"))
