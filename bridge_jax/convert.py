@@ -19,7 +19,11 @@ into an inert placeholder, so no code from the file is executed and PyTorch need
 allocates is bounded: every storage's and tensor's byte size is computed from its header, shape and stride
 before anything is read or allocated, and a tensor that is no plain view of its storage (reads past it,
 negative strides, a stride 0 expanding one element, more elements than the storage) or a storage over 4 GiB is
-one error line ("<file>: tensor <key> claims <N> GiB from a <M> B storage (...)").
+one error line ("<file>: tensor <key> claims <N> GiB from a <M> B storage (...)"). All storages and tensors of
+one file together may take at most 2 GiB (`MAX_FILE_BYTES`; the largest upstream epoch checkpoint, weights plus
+Adam state, takes under 1 GiB). A zip file's directory is checked before any member is decompressed: members
+declaring more than that in all, or one expanding more than 100:1 (`MAX_COMPRESSION_RATIO`; torch.save does not
+compress at all), are refused ("<file>: zip member <name> expands <N> KiB to <M> GiB (...)").
 
 Conversion is all-or-nothing: every expected tensor must be present with the right shape and no
 unexpected tensor may remain; otherwise the missing / unexpected / mismatched keys are reported by name and
@@ -30,10 +34,12 @@ parameter). Conv weights go OIHW -> HWIO (permute 2, 3, 1, 0); transposed-conv w
 from __future__ import annotations
 
 import io
+import os
 import pickle
 import struct
 import sys
 import zipfile
+import zlib
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -95,10 +101,11 @@ class _StorageType:
 
 
 class _Storage:
-    """A storage record from a persistent id; `data` (1-D numpy) is filled when the bytes are read."""
+    """A storage record from a persistent id; `data` (1-D numpy) is filled when the bytes are read. `budget`: the
+    file's `_Budget`, charged for the bytes read and for each tensor materialised from this storage."""
 
-    def __init__(self, dtype: np.dtype, numel: int):
-        self.dtype, self.numel, self.data = dtype, numel, None
+    def __init__(self, dtype: np.dtype, numel: int, budget: _Budget):
+        self.dtype, self.numel, self.data, self.budget = dtype, numel, None, budget
         self.base: _Storage | None = None
         self.base_offset = 0
 
@@ -114,13 +121,48 @@ class _Storage:
 # more is corrupt or crafted, and is refused before anything of that size is allocated.
 MAX_TENSOR_BYTES = 4 * 2**30
 
+# What reading one file may allocate for its storages and tensors together. The largest upstream file, a resnet_md
+# epoch checkpoint, holds 234 MB of weights and twice that of Adam state, and reading it copies the weights once
+# more (under 1 GiB in all); a bound per tensor alone would let eight 4 GiB storages ask for 32 GiB.
+MAX_FILE_BYTES = 2 * 2**30
+
+# torch.save writes its zip members uncompressed, and float weights re-zipped shrink by ~10%; deflating zeros
+# reaches ~1000:1, so a few MB of file could otherwise make the reader inflate gigabytes before the size bounds
+# see the result. Members of at most MAX_RATIO_FREE_BYTES are not held to the ratio: a small all-zero bias in a
+# re-zipped file compresses as well and costs nothing.
+MAX_COMPRESSION_RATIO = 100
+MAX_RATIO_FREE_BYTES = 2**20
+
+# Storage bytes are read in pieces of this size into one array of the declared size: zipfile's read() of a whole
+# member concatenates bytes objects, holding the member two or three times over.
+_READ_CHUNK = 16 * 2**20
+
 
 def _size_text(nbytes: int) -> str:
-    """`149 GiB`, `12.5 MiB`, `400 B`."""
+    """`149 GiB`, `12.5 MiB`, `1020 KiB`, `400 B`."""
     for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
         if nbytes >= scale:
-            return f"{nbytes / scale:.3g} {unit}"
+            value = nbytes / scale
+            return f"{value:.3g} {unit}" if value < 1000 else f"{value:.0f} {unit}"  # .3g: 1020 -> 1.02e+03
     return f"{nbytes} B"
+
+
+class _Budget:
+    """The bytes one file's storages and tensors have taken so far, bounded by `MAX_FILE_BYTES` (read at each
+    charge, so that tests can lower it)."""
+
+    def __init__(self):
+        self.used = 0
+
+    def charge(self, nbytes: int, what: str = "") -> None:
+        """Count `nbytes` about to be allocated for `what` ("storage 3"; "" where the caller names it), or raise
+        CheckpointFormatError when that would pass the bound (before anything is allocated)."""
+        total = self.used + nbytes
+        if total > MAX_FILE_BYTES:
+            raise CheckpointFormatError(f"{what + ' ' if what else ''}takes {_size_text(nbytes)}, which brings the "
+                                        f"file's storages and tensors to {_size_text(total)}, over the "
+                                        f"{_size_text(MAX_FILE_BYTES)} limit of one file")
+        self.used = total
 
 
 class _LazyTensor:
@@ -167,6 +209,8 @@ class _LazyTensor:
             return np.zeros(self.size, base.dtype)
         if not self.size:
             return np.array(base[self.offset])
+        # each tensor is a copy: many tensors viewing one large storage would otherwise multiply it unbounded
+        self.storage.budget.charge(int(np.prod(self.size, dtype=object)) * base.itemsize)
         item = base.itemsize
         view = np.lib.stride_tricks.as_strided(base[self.offset:], shape=self.size,
                                                strides=tuple(s * item for s in self.stride))
@@ -219,28 +263,69 @@ class _RestrictedUnpickler(pickle.Unpickler):
         return self._persistent(pid)
 
 
-def _storage_from_pid(pid, storages: dict) -> _Storage:
+def _storage_from_pid(pid, storages: dict, budget: _Budget) -> _Storage:
     if not isinstance(pid, tuple) or len(pid) < 5 or pid[0] != "storage":
         raise CheckpointFormatError(f"unsupported persistent id {pid!r:.80}")
     stype, key, numel = pid[1], str(pid[2]), int(pid[4])
     if not isinstance(stype, _StorageType):
         raise CheckpointFormatError(f"unsupported storage type {stype!r:.80}")
     if key not in storages:
-        storages[key] = _Storage(stype.dtype, numel)
+        storages[key] = _Storage(stype.dtype, numel, budget)
     root = storages[key]
     view = pid[5] if len(pid) > 5 else None
     if view is not None:  # legacy views: (view_key, offset, size) into the root storage
         vkey, offset, vsize = view
         if vkey not in storages:
-            s = _Storage(stype.dtype, int(vsize))
+            s = _Storage(stype.dtype, int(vsize), budget)
             s.base, s.base_offset = root, int(offset)
             storages[vkey] = s
         return storages[vkey]
     return root
 
 
+def _read_storage_bytes(f, nbytes: int, dtype: np.dtype, little: bool, key: str) -> np.ndarray:
+    """At most `nbytes` from the binary file `f` as a 1-D array of `dtype` stored with the given byte order,
+    allocated once at `nbytes` (the caller has bounded and charged it) and filled in `_READ_CHUNK` pieces; fewer
+    bytes when the file ends sooner."""
+    buf = np.empty(nbytes, np.uint8)
+    pos = 0
+    while pos < nbytes:
+        chunk = f.read(min(_READ_CHUNK, nbytes - pos))
+        if not chunk:
+            break
+        buf[pos:pos + len(chunk)] = np.frombuffer(chunk, np.uint8)
+        pos += len(chunk)
+    buf = buf[:pos]
+    if pos % dtype.itemsize:
+        raise CheckpointFormatError(f"storage {key} holds {pos} B, not a whole number of {dtype.itemsize}-byte "
+                                    f"elements")
+    stored = dtype.newbyteorder("<" if little else ">")
+    data = buf.view(stored)
+    if not stored.isnative:  # swapped in place: no second copy of the storage
+        data = data.byteswap(inplace=True).view(stored.newbyteorder())
+    return data.view(dtype)
+
+
+def _check_zip_directory(zf: zipfile.ZipFile) -> None:
+    """Refuse an archive from its directory alone, before any member is decompressed: a member expanding more
+    than `MAX_COMPRESSION_RATIO` (and to more than `MAX_RATIO_FREE_BYTES`), or members declaring more than
+    `MAX_FILE_BYTES` in all. The declared size is what zipfile decompresses a member to at most."""
+    total = 0
+    for info in zf.infolist():
+        total += info.file_size
+        if info.file_size > max(MAX_RATIO_FREE_BYTES, MAX_COMPRESSION_RATIO * info.compress_size):
+            raise CheckpointFormatError(
+                f"zip member {info.filename} expands {_size_text(info.compress_size)} to "
+                f"{_size_text(info.file_size)} ({info.file_size / max(info.compress_size, 1):.0f}:1, over the "
+                f"{MAX_COMPRESSION_RATIO}:1 limit of the compression ratio of a member)")
+    if total > MAX_FILE_BYTES:
+        raise CheckpointFormatError(f"zip members declare {_size_text(total)} in all, over the "
+                                    f"{_size_text(MAX_FILE_BYTES)} limit of one file")
+
+
 def _load_zip(path: Path) -> Any:
     with zipfile.ZipFile(path) as zf:
+        _check_zip_directory(zf)
         names = zf.namelist()
         pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
         if not pkl:
@@ -251,9 +336,10 @@ def _load_zip(path: Path) -> Any:
         if prefix + "byteorder" in names:
             order = zf.read(prefix + "byteorder").decode().strip()
         storages: dict[str, _Storage] = {}
+        budget = _Budget()
 
         def persistent_load(pid):
-            st = _storage_from_pid(pid, storages)
+            st = _storage_from_pid(pid, storages, budget)
             if st.data is None and st.base is None:
                 key = str(pid[2])
                 try:
@@ -264,9 +350,9 @@ def _load_zip(path: Path) -> Any:
                 if claim > MAX_TENSOR_BYTES:  # checked before decompressing anything
                     raise CheckpointFormatError(f"storage {key} claims {_size_text(claim)} (over the "
                                                 f"{_size_text(MAX_TENSOR_BYTES)} limit of one tensor)")
-                raw = zf.read(info)
-                dt = st.dtype.newbyteorder("<" if order == "little" else ">")
-                st.data = np.frombuffer(raw, dtype=dt).astype(st.dtype, copy=False)
+                budget.charge(info.file_size, f"storage {key}")
+                with zf.open(info) as f:
+                    st.data = _read_storage_bytes(f, info.file_size, st.dtype, order == "little", key)
             return st
 
         return _RestrictedUnpickler(io.BytesIO(zf.read(pkl[0])), persistent_load).load()
@@ -274,6 +360,7 @@ def _load_zip(path: Path) -> Any:
 
 def _load_legacy(path: Path) -> Any:
     storages: dict[str, _Storage] = {}
+    budget = _Budget()
     size = path.stat().st_size
     with open(path, "rb") as f:
         def plain():
@@ -285,7 +372,7 @@ def _load_legacy(path: Path) -> Any:
             raise CheckpointFormatError("unsupported legacy torch protocol version")
         sys_info = plain()
         little = not isinstance(sys_info, dict) or sys_info.get("little_endian", True)
-        result = _RestrictedUnpickler(f, lambda pid: _storage_from_pid(pid, storages)).load()
+        result = _RestrictedUnpickler(f, lambda pid: _storage_from_pid(pid, storages, budget)).load()
         keys = plain()
         for key in keys:
             st = storages.get(str(key))
@@ -300,20 +387,22 @@ def _load_legacy(path: Path) -> Any:
                 raise CheckpointFormatError(f"storage {key} claims {_size_text(max(nbytes, 0))}, more than "
                                             + ("the rest of the file holds" if nbytes <= MAX_TENSOR_BYTES else
                                                f"the {_size_text(MAX_TENSOR_BYTES)} limit of one tensor"))
-            raw = f.read(nbytes)
-            if len(raw) != numel * st.dtype.itemsize:
+            budget.charge(nbytes, f"storage {key}")
+            st.data = _read_storage_bytes(f, nbytes, st.dtype, little, str(key))
+            if st.data.size != numel:
                 raise CheckpointFormatError("file truncated in the tensor data")
-            dt = st.dtype.newbyteorder("<" if little else ">")
-            st.data = np.frombuffer(raw, dtype=dt).astype(st.dtype, copy=False)
             st.numel = numel
     return result
 
 
 def read_torch_file(path: str | Path) -> Any:
-    """Unpickle a `torch.save` file safely; tensors come back as `_LazyTensor` (see `materialize`)."""
+    """Unpickle a `torch.save` file safely; tensors come back as `_LazyTensor` (see `materialize`).
+
+    Raises CheckpointFormatError, its message starting with the file name."""
+    name = os.fspath(path)
     path = Path(path)
     if not path.is_file():
-        raise CheckpointFormatError(f"{path}: no such file")
+        raise CheckpointFormatError(f"{name}: no such file")
     with open(path, "rb") as f:
         head = f.read(4)
     try:
@@ -321,11 +410,11 @@ def read_torch_file(path: str | Path) -> Any:
             return _load_zip(path)
         if head[:1] == b"\x80":
             return _load_legacy(path)
-    except CheckpointFormatError:
-        raise
-    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, ValueError, TypeError, KeyError) as e:
-        raise CheckpointFormatError(f"corrupt or unsupported torch file ({type(e).__name__}: {e})") from e
-    raise CheckpointFormatError(f"not a PyTorch checkpoint (starts with bytes {head!r})")
+    except CheckpointFormatError as e:
+        raise CheckpointFormatError(f"{name}: {e}") from e
+    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, zlib.error, ValueError, TypeError, KeyError) as e:
+        raise CheckpointFormatError(f"{name}: corrupt or unsupported torch file ({type(e).__name__}: {e})") from e
+    raise CheckpointFormatError(f"{name}: not a PyTorch checkpoint (starts with bytes {head!r})")
 
 
 def materialize(obj: Any) -> Any:

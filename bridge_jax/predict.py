@@ -493,6 +493,9 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
     also written to ``predict.json``.
     """
     write_video = source.kind == "video" if write_video is None else write_video
+    if write_video and not files.opencv_can_open(os.path.abspath(out_dir)):  # the staging folder is a sibling
+        raise PredictError(f"output folder {files.shown_name(out_dir)}: OpenCV cannot write video.mp4 into a folder "
+                           "whose path is not valid UTF-8 (rename it, or --no-video)")
     if source.num_pairs:  # one pair is not padded to a batch of 4: each padded row costs a full network call
         batch = min(batch, source.num_pairs)
     runner = Runner(predictor, batch)
@@ -789,7 +792,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))
-    print(f"wrote {args.out}")
+    print(f"wrote {files.shown_name(args.out)}")  # a name that is not UTF-8 would not print as it is
     return 0
 
 

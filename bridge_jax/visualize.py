@@ -26,6 +26,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from bridge_jax import files
+
 # Middlebury colour-wheel ramp lengths, in wheel order starting at red.
 _RAMPS = (("RY", 15), ("YG", 6), ("GC", 4), ("CB", 11), ("BM", 13), ("MR", 6))
 
@@ -364,7 +366,6 @@ def prediction_panel(image: np.ndarray, flow: Optional[np.ndarray] = None, dispa
 
 
 def write_image(path: str | os.PathLike, rgb: np.ndarray) -> None:
-    """Write an RGB uint8 image (PNG/JPEG by extension); raises OSError naming the path if OpenCV fails."""
-    rgb = to_uint8(rgb)
-    if not cv2.imwrite(os.fspath(path), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write image {path}")
+    """Write an RGB uint8 image (PNG/JPEG by extension) atomically, under any file name (`files.imwrite`);
+    ValueError naming the path if OpenCV cannot encode it, OSError if it cannot be written."""
+    files.imwrite(path, to_uint8(rgb)[..., ::-1])

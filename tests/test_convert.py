@@ -110,15 +110,18 @@ class _Writer:
             raise TypeError(type(obj))
 
 
-def write_pth(path, obj, tensors, legacy=False):
-    """`obj` holds _Tensor leaves; `tensors` lists them (storage order)."""
+def write_pth(path, obj, tensors, legacy=False, compression=zipfile.ZIP_STORED, declare=None):
+    """`obj` holds _Tensor leaves; `tensors` lists them (storage order). Zip files: `compression` for every
+    member (torch.save stores them), `declare` {member: size} the uncompressed sizes their directory states."""
     if not legacy:
-        with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+        with zipfile.ZipFile(path, "w", compression) as zf:
             zf.writestr("archive/data.pkl", _Writer().dump(obj))
             zf.writestr("archive/byteorder", "little")
             for t in tensors:
                 zf.writestr(f"archive/data/{t.key}", t.array.tobytes())
             zf.writestr("archive/version", "3\n")
+            for name, size in (declare or {}).items():
+                zf.getinfo(name).file_size = size  # the central directory is written from these at close
         return
     with open(path, "wb") as f:
         f.write(_Writer().dump(0x1950A86A20F9469CFC6C))
@@ -392,3 +395,145 @@ def test_the_stride_zero_bomb_names_its_size_in_gib(tmp_path):
     write_pth(src, {"w": t}, [t])
     with pytest.raises(convert.CheckpointFormatError, match=r"bomb.pth: tensor w claims 149 GiB from a 4 B storage"):
         convert.load_state_dict(src)
+
+
+# ---------------------------------------------------------------- bounds over a whole file (zip directory, total)
+
+
+@pytest.fixture
+def zip_opens(monkeypatch):
+    """Counts the members opened (decompressed) from any zip file; ZipFile.read goes through ZipFile.open."""
+    opened = []
+    real_open = zipfile.ZipFile.open
+
+    def counting_open(self, name, mode="r", *args, **kwargs):
+        if mode == "r":  # not the members a test writes
+            opened.append(getattr(name, "filename", name))
+        return real_open(self, name, mode, *args, **kwargs)
+
+    monkeypatch.setattr(zipfile.ZipFile, "open", counting_open)
+    return opened
+
+
+def _refused(src, tmp_path, capsys):
+    """`bridge-convert` on `src`: (its one error line, peak traced bytes); checks exit code 2 and nothing written."""
+    import tracemalloc
+    tracemalloc.start()
+    try:
+        code = convert.main(["--from", str(src), "--out", str(tmp_path / "out")])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
+    return err, peak
+
+
+def test_a_deflate_bomb_member_is_refused_from_the_zip_directory(tmp_path, capsys, zip_opens):
+    # 32 MiB of zeros deflate to 32 KB (1029:1): refused by its ratio before a byte of it is inflated
+    t = _Tensor("0", np.zeros(8 * 2**20, np.float32))
+    src = tmp_path / "bomb.pth"
+    write_pth(src, {"conv1.weight": t}, [t], compression=zipfile.ZIP_DEFLATED)
+    assert src.stat().st_size < 40_000
+    err, peak = _refused(src, tmp_path, capsys)
+    assert re.fullmatch(rf"error: {re.escape(str(src))}: zip member archive/data/0 expands 31.\d KiB to 32 MiB "
+                        r"\(10[23]\d:1, over the 100:1 limit of the compression ratio of a member\)\n", err), err
+    assert zip_opens == [] and peak < 2**20
+
+
+def test_a_member_declaring_a_huge_size_is_refused_before_reading(tmp_path, capsys, zip_opens):
+    # a 40-byte storage whose directory entry declares 3.5 GiB (the local header keeps the true size)
+    t = _Tensor("0", np.arange(10, dtype=np.float32))
+    src = tmp_path / "claims.pth"
+    write_pth(src, {"conv1.weight": t}, [t], declare={"archive/data/0": 7 * 2**29})
+    err, peak = _refused(src, tmp_path, capsys)
+    assert err == (f"error: {src}: zip member archive/data/0 expands 40 B to 3.5 GiB (93952410:1, over the 100:1 "
+                   "limit of the compression ratio of a member)\n")
+    assert zip_opens == [] and peak < 2**20
+
+
+def test_members_declaring_more_than_the_file_bound_are_refused_before_reading(tmp_path, capsys, zip_opens,
+                                                                               monkeypatch):
+    # eight 4 KiB storages, each a plain stored member (ratio 1:1), 32 KiB (+ data.pkl) against a bound of 16 KiB
+    monkeypatch.setattr(convert, "MAX_FILE_BYTES", 16 * 2**10)
+    tensors = [_Tensor(str(i), np.full(1024, i, np.float32)) for i in range(8)]
+    src = tmp_path / "many.pth"
+    write_pth(src, {f"w{i}": t for i, t in enumerate(tensors)}, tensors)
+    err, _ = _refused(src, tmp_path, capsys)
+    assert re.fullmatch(rf"error: {re.escape(str(src))}: zip members declare 3[23].\d KiB in all, over the 16 KiB "
+                        r"limit of one file\n", err), err
+    assert zip_opens == []
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_storages_read_count_against_the_file_bound(tmp_path, capsys, monkeypatch, legacy):
+    # a legacy file has no directory: its storages are charged as they are read, and the third one passes the bound
+    monkeypatch.setattr(convert, "MAX_FILE_BYTES", 10 * 2**10)
+    monkeypatch.setattr(convert, "_check_zip_directory", lambda zf: None)  # the zip case: the same bound, later
+    tensors = [_Tensor(str(i), np.full(1024, i, np.float32)) for i in range(8)]
+    src = tmp_path / "many.pth"
+    write_pth(src, {f"w{i}": t for i, t in enumerate(tensors)}, tensors, legacy=legacy)
+    err, _ = _refused(src, tmp_path, capsys)
+    assert err == (f"error: {src}: storage 2 takes 4 KiB, which brings the file's storages and tensors to 12 KiB, "
+                   "over the 10 KiB limit of one file\n")
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_tensors_sharing_one_storage_count_against_the_file_bound(tmp_path, capsys, monkeypatch, legacy):
+    # one 4 KiB storage viewed whole by eight tensors: each tensor is a 4 KiB copy, so the file asks for 36 KiB
+    monkeypatch.setattr(convert, "MAX_FILE_BYTES", 10 * 2**10)
+    storage = np.arange(1024, dtype=np.float32)
+    tensors = [_Claim("0", storage, (32, 32), (32, 1)) for _ in range(8)]
+    src = tmp_path / "shared.pth"
+    write_pth(src, {f"w{i}": t for i, t in enumerate(tensors)}, tensors[:1], legacy=legacy)
+    with pytest.raises(convert.CheckpointFormatError) as e:
+        convert.load_state_dict(src)
+    assert str(e.value) == (f"{src}: tensor w1 takes 4 KiB, which brings the file's storages and tensors to "
+                            "12 KiB, over the 10 KiB limit of one file")
+    monkeypatch.setattr(convert, "MAX_FILE_BYTES", 36 * 2**10)  # exactly enough: every tensor is the storage
+    got = convert.load_state_dict(src)
+    assert list(got) == [f"w{i}" for i in range(8)]
+    assert all(np.array_equal(v, storage.reshape(32, 32)) for v in got.values())
+
+
+def test_a_deflated_checkpoint_still_converts(tmp_path, zip_opens):
+    # re-zipped weights shrink by ~10%, far from the ratio bound; every member is read once
+    sd = tiny_state_dict(np.random.default_rng(4))
+    tensors = [_Tensor(str(i), v) for i, v in enumerate(sd.values())]
+    src = tmp_path / "deflated.pth"
+    write_pth(src, dict(zip(sd, tensors)), tensors, compression=zipfile.ZIP_DEFLATED)
+    out = tmp_path / "converted"
+    assert convert.main(["--from", str(src), "--out", str(out)]) == 0
+    assert sorted(zip_opens) == sorted(["archive/data.pkl", "archive/byteorder"]
+                                       + [f"archive/data/{t.key}" for t in tensors])
+    _, params = checkpointing.read_params(out)
+    np.testing.assert_array_equal(np.asarray(params["up3"]["conv2"]["kernel"]),
+                                  sd["up3.conv2.weight"].transpose(2, 3, 1, 0))
+
+
+def test_the_file_bound_fits_the_largest_upstream_checkpoint():
+    # resnet_md's weights (58,461,416 float32, test_full_size_key_table_matches_reference) and Adam's two moments
+    # in an epoch checkpoint, plus the copy of the weights that reading makes
+    assert convert.MAX_FILE_BYTES >= 4 * 4 * 58_461_416
+    assert convert.MAX_FILE_BYTES < 8 * convert.MAX_TENSOR_BYTES
+
+
+def test_sizes_in_messages_are_plain_numbers():
+    # 1020 KiB, a 1 GiB deflate bomb's compressed size, came out as "1.02e+03 KiB"
+    assert [convert._size_text(n) for n in (400, 1020 * 2**10, 7 * 2**29, 5000 * 2**30)] == \
+        ["400 B", "1020 KiB", "3.5 GiB", "5000 GiB"]
+
+
+def test_a_corrupt_deflate_stream_is_one_line(tmp_path, capsys):
+    t = _Tensor("0", np.zeros(4096, np.float32))
+    src = tmp_path / "corrupt.pth"
+    write_pth(src, {"conv1.weight": t}, [t], compression=zipfile.ZIP_DEFLATED)
+    with zipfile.ZipFile(src) as zf:
+        info = zf.getinfo("archive/data/0")
+    data = bytearray(src.read_bytes())
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)  # after the local header
+    data[start:start + 4] = b"\xff\xff\xff\xff"  # a deflate block type that does not exist
+    src.write_bytes(bytes(data))
+    err, _ = _refused(src, tmp_path, capsys)
+    assert err.startswith(f"error: {src}: corrupt or unsupported torch file (error: Error -3 while decompressing"), err

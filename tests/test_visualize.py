@@ -109,8 +109,12 @@ def test_write_image_roundtrip(tmp_path):
     visualize.write_image(path, img)
     back = cv2.imread(str(path))[..., ::-1]
     np.testing.assert_array_equal(back, img)
-    with pytest.raises(OSError, match="could not write"):
-        visualize.write_image(tmp_path / "missing_dir" / "x.png", img)
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(OSError, match="a_file"):
+        visualize.write_image(tmp_path / "a_file" / "x.png", img)
+    with pytest.raises(ValueError, match=r"cannot write image .*f\.xyz: OpenCV cannot encode .* as \.xyz"):
+        visualize.write_image(tmp_path / "f.xyz", img)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "f.png"]
 
 
 def test_prediction_panel():

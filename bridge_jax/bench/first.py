@@ -29,6 +29,7 @@ import tempfile
 import time
 from typing import Callable
 
+from bridge_jax import files
 from bridge_jax.bench.timing import BenchError, _busy_jiffies
 
 CACHE_ENV = "BRIDGE_JAX_CACHE_DIR"
@@ -140,8 +141,10 @@ def write_photo_pair(folder: str, height: int = PAIR_SIZE[0], width: int = PAIR_
     for name, img in zip(("a.png", "b.png"), skdata.stereo_motorcycle()[:2]):
         small = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
         path = os.path.join(folder, name)
-        if not cv2.imwrite(path, cv2.cvtColor(small, cv2.COLOR_RGB2BGR)):
-            raise BenchError(f"first_prediction: could not write {path}")
+        try:
+            files.imwrite(path, cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+        except (ValueError, OSError) as e:
+            raise BenchError(f"first_prediction: could not write {path} ({e})") from None
         paths.append(path)
     return paths[0], paths[1]
 

@@ -37,6 +37,7 @@ import time
 
 import cv2
 
+from bridge_jax import files
 from bridge_jax.data import kitti
 
 log = logging.getLogger(__name__)
@@ -304,7 +305,10 @@ def image_size(path: str) -> tuple[int, int]:
             return int(h), int(w)
     except Exception:  # noqa: BLE001  (no Pillow, or Pillow cannot read it: the decoder decides)
         pass
-    img = cv2.imread(path, cv2.IMREAD_COLOR)
+    try:
+        img = files.imread(path, cv2.IMREAD_COLOR)
+    except OSError as e:
+        raise kitti.CorruptImageError(path, f"{UNREADABLE} (cannot read: {e.strerror or e})") from None
     if img is None or img.ndim < 2 or img.shape[0] == 0:
         raise kitti.CorruptImageError(path, f"{UNREADABLE} (not a PNG or JPEG image)")
     return int(img.shape[0]), int(img.shape[1])

@@ -37,6 +37,9 @@ def _open(path: str):
     """A cv2.VideoCapture of `path` that opened; VideoError naming the file otherwise."""
     if not os.path.isfile(path):
         raise VideoError(f"video {path} does not exist")
+    if not files.opencv_can_open(path):  # OpenCV would crash (no error) on the name
+        raise VideoError(f"video {files.shown_name(path)}: OpenCV cannot open a file whose name is not valid UTF-8 "
+                         "(rename it)")
     cap = cv2.VideoCapture(path)
     if not cap.isOpened():
         cap.release()
@@ -120,8 +123,7 @@ def extract_stereo_video(paths: Sequence[str], out_dir: str, *, side_by_side: bo
                 break
             size = left.shape[:2]
             for side, img in (("left", left), ("right", right)):
-                if not cv2.imwrite(os.path.join(tmp, side, f"{written:06d}.png"), img[..., ::-1]):
-                    raise OSError(f"cannot write frames into {out_dir}")
+                files.imwrite(os.path.join(tmp, side, f"{written:06d}.png"), img[..., ::-1])
             written += 1
         if written < 2:
             raise VideoError(f"{' + '.join(paths)}: {written} frame(s) extracted; a cycle needs at least two")
