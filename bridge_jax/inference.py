@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import checkpointing, compile_cache, executable_cache, geometry, models, zoo
+from bridge_jax import checkpointing, compile_cache, executable_cache, geometry, memory, models, zoo
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 from bridge_jax.polish import POLISH_MODES, check_polish, component_mask, polish_maps
 
@@ -565,7 +565,7 @@ class Predictor:
             if img.shape[:2] != size:
                 which = f"image_a[{i}]" if i < len(a) else f"image_b[{i - len(a)}]"
                 raise ValueError(f"all images must have the same size: image_a[0] is {size[0]}x{size[1]}, "
-                                 f"{which} is {img.shape[0]}x{img.shape[1]} (h x w)")
+                                 f"{which} is {img.shape[0]}x{img.shape[1]} (height x width)")
         low = minimum_input_size(self.model_name)
         if full[0] < low[0] or full[1] < low[1]:
             raise ValueError(f"a {full[0]}x{full[1]} input is smaller than model {self.model_name} accepts (at least "
@@ -698,7 +698,8 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
     second Python process gets its first answer as fast as `bridge-predict` does; None = off (every process
     compiles afresh).
     Raises ValueError naming the checkpoint (missing, unreadable), `size_option` (how the caller's user
-    gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or
+    gave the size, e.g. "--working-size") with the model's input multiple and a size that fits, or for a size
+    that cannot fit in memory (`memory.check_fits`, before the weights are read), or
     `refine_option` for a refine count out of range, `symmetry_option` for an unknown symmetry, or
     `polish_option` for an unknown polish.
     """
@@ -719,6 +720,10 @@ def load_predictor(path: str | os.PathLike, *, height: int | None = None, width:
         trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
         height = trained[0] if height is None else height
         width = trained[1] if width is None else width
+    if all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (height, width)):
+        # before the weights are read: a size that cannot fit is refused without allocating anything
+        memory.check_fits(size_option, height, width, memory.prediction_bytes(height, width),
+                          "a prediction (one pair per call)", jax.devices()[0])
     cfg, params = zoo.load_params(path)
     models.check_working_size(cfg["name"], height, width, what=size_option)
     separate = bool(cfg.pop("separate_networks", False))

@@ -204,7 +204,7 @@ def _list_images(folder: str) -> list[str]:
 def _checked_size(img: np.ndarray, size: Optional[tuple], path: str) -> tuple:
     h, w = inference.input_size(img)
     if size is not None and (h, w) != size:
-        raise PredictError(f"{path} is {w}x{h}, but the first frame is {size[1]}x{size[0]}")
+        raise PredictError(f"{path} is {h}x{w}, but the first frame is {size[0]}x{size[1]} (height x width)")
     return h, w
 
 

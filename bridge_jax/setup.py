@@ -15,15 +15,17 @@ import dataclasses
 import inspect
 import io
 import json
+import math
 import textwrap
 import tokenize
 from typing import Any, Optional, Sequence
 
 import jax
 import ml_collections
+import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import configs, cycle, losses, models
+from bridge_jax import configs, cycle, losses, memory, models
 from bridge_jax.data.pipeline import DataConfig
 from bridge_jax.micro_batch import MicroBatchedStep
 from bridge_jax.models.layers import WEIGHT_GRAD_METHODS
@@ -106,6 +108,92 @@ def check_counts(record, section: str) -> None:
         low, special = COUNT_RULES[key]
         if not _is_int(value) or not (value >= low or value in special):
             raise ValueError(f"config.{key}={value!r}: must be {count_rule_text(key)}")
+
+
+# Every float reaches float32 arithmetic (the loss, Adam, the data augmentation), where a value beyond float32's
+# largest overflows to inf and a positive one below its smallest normal number may flush to 0.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+
+# The float fields, by dotted config key: (low, high, ends, why). The value must lie in the interval from `low`
+# to `high`, `ends` saying which ends belong to it ("[]" both, "[)" low only, "(]" high only, "()" neither);
+# high = inf means "up to float32's largest", and an open low end of 0 means "at least float32's smallest normal
+# number". NaN and inf never pass. `why` says what the range follows from (it ends the refusal, in parentheses).
+# `check_floats` applies them to the values of every section (`SECTIONS`) before its record is built, so every
+# refusal reads like the integers' ("config.<key>=<value>: must be ..."); a test checks that each float field
+# of those records has a rule here.
+FLOAT_RULES: dict[str, tuple[float, float, str, str]] = {
+    # Adam and its schedule (train_step.make_optimizer): b1 = 1 or b2 = 1 divide by 1 - b^t = 0 in the bias
+    # correction; eps = 0 divides 0 by 0 wherever a gradient and its moments are 0.
+    "lr": (0.0, math.inf, "()", "Adam's learning rate"),
+    "lr_decay": (0.0, 1.0, "(]", "the lr factor at each milestone; 1 = constant"),
+    "adam_b1": (0.0, 1.0, "[)", "Adam's first-moment decay"),
+    "adam_b2": (0.0, 1.0, "[)", "Adam's second-moment decay"),
+    "adam_eps": (0.0, math.inf, "()", "keeps Adam's denominator above 0 where a gradient is 0"),
+    "clip_grad_norm": (0.0, math.inf, "[)", "a global L2 norm; 0 = off"),
+    # The loss (losses.total_loss, geometry.occlusion_mask): weights and edge constants of eq. 5-13.
+    "loss.alpha": (0.0, 1.0, "[]", "the SSIM share of the SSIM + L1 photometric error"),
+    "loss.beta": (0.0, math.inf, "[)", "edge constant of exp(-beta |dI|); 0 = no edge weighting"),
+    "loss.beta1": (0.0, math.inf, "[)", "edge constant of exp(-beta1 |dI|); 0 = no edge weighting"),
+    "loss.lambda_sm": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
+    "loss.lambda_sm1": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
+    "loss.lambda_lr": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
+    "loss.lambda_2warp": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
+    "loss.self_supervision": (0.0, math.inf, "[)", "a weight of the total loss; 0 = off"),
+    # |D + W(D')|^2 <= 2 (|D|^2 + |W(D')|^2): from alpha1 = 2 on the paper's test never marks a pixel occluded
+    "loss.occ_alpha1": (0.0, 2.0, "[)", "the relative part of the occlusion threshold, eq. 6; from 2 on no pixel "
+                                        "is ever occluded"),
+    "loss.occ_alpha2": (0.0, math.inf, "[)", "the constant part of the occlusion threshold in pixels^2, eq. 6"),
+    # the band is cut from both sides: half the height would leave no pixel in the mask
+    "loss.border_ratio": (0.0, 0.5, "[)", "the fraction of the height left out on every side of the masks"),
+    # masked means divide by the mask's sum: a floor of 0 divides by 0 where every pixel is occluded
+    "loss.mask_floor": (0.0, 1.0, "(]", "added to every occlusion mask value, which lies in [0, 1]"),
+    "loss.smooth_scale": (0.0, math.inf, "()", "the map's factor before the smoothness term; lambda_sm = 0 turns "
+                                               "the term off"),
+    # The augmentation (data.pipeline): the crops must stay inside the frame.
+    "data.augment_zoom": (0.1, 1.0, "[]", "the smallest zoom-crop scale; 1 = off"),
+    "data.augment_shift": (0.0, 0.25, "[]", "a fraction of the height; 0 = off"),
+    "data.augment_t1_zoom": (0.0, 0.2, "[]", "the largest relative zoom between t and t+1; 0 = off"),
+}
+
+
+def float_rule_text(key: str) -> str:
+    """What `FLOAT_RULES[key]` allows, in words: "a number in [0, 1) (Adam's first-moment decay)"."""
+    low, high, ends, why = FLOAT_RULES[key]
+    tiny = ends[0] == "(" and low == 0  # "> 0" is "at least float32's smallest normal number"
+    if high == math.inf:
+        bound = f">= {low:g}" if ends[0] == "[" else f"> {low:g}"
+        limits = f"{FLOAT32_TINY:.2g} to {FLOAT32_MAX:.2g}" if tiny else f"at most {FLOAT32_MAX:.2g}"
+        text = f"a number {bound} float32 can hold, {limits}"
+    else:
+        text = f"a number in {ends[0]}{low:g}, {high:g}{ends[1]}"
+        if tiny:
+            text += f", at least {FLOAT32_TINY:.2g} for float32"
+    return f"{text} ({why})" if why else text
+
+
+def float_allowed(key: str, value) -> bool:
+    """Whether `value` (an int or float, not a bool) passes `FLOAT_RULES[key]`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return False
+    value = float(value)
+    if not math.isfinite(value) or abs(value) > FLOAT32_MAX:
+        return False
+    low, high, ends, _ = FLOAT_RULES[key]
+    if ends[0] == "(" and low == 0:
+        low_ok = value >= FLOAT32_TINY
+    else:
+        low_ok = value >= low if ends[0] == "[" else value > low
+    return low_ok and (value <= high if ends[1] == "]" else value < high)
+
+
+def check_floats(values: dict, section: str) -> None:
+    """Refuses (ValueError "config.<key>=<value>: must be ...") the first float field of `values` (a section's
+    fields by name) outside its `FLOAT_RULES` range."""
+    for name, value in values.items():
+        key = f"{section}.{name}" if section else name
+        if key in FLOAT_RULES and not float_allowed(key, value):
+            raise ValueError(f"config.{key}={value!r}: must be {float_rule_text(key)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,6 +341,7 @@ def _typed(cls, values: dict, name: str):
     if unknown:
         raise ConfigError(f"{where}unknown field(s) {unknown}; known fields: {sorted(known)}")
     try:
+        check_floats(values, name)  # before the record: its own checks would name a NaN less clearly
         record = cls(**values)
         check_counts(record, name)
         return record
@@ -322,9 +411,28 @@ def _check_self_supervision_crop(name: str, height: int, width: int, crop: int) 
     multiple = models.INPUT_MULTIPLE[name]
     ok = [c for c in range(multiple // 2, min(height, width) // 2, multiple // 2) if fits(c)]
     hint = f"e.g. {ok[0]}" if ok else f"none fits the working size {height}x{width}"
-    raise ConfigError(f"config.loss.self_supervision_crop={crop}: the student's crop of the {height}x{width} working "
-                      f"size is {height - 2 * crop}x{width - 2 * crop}, not a working size of model {name} (2 * crop "
-                      f"must be a multiple of {multiple} and leave a big enough size); {hint}")
+    raise ConfigError(f"config.loss.self_supervision_crop={crop}: the student's crop of the {height}x{width} (height "
+                      f"x width) working size is {height - 2 * crop}x{width - 2 * crop}, not a working size of model "
+                      f"{name} (2 * crop must be a multiple of {multiple} and leave a big enough size); {hint}")
+
+
+def _check_training_memory(height: int, width: int, devices: tuple, rows_per_device: int,
+                           cycles_per_device: int) -> None:
+    """Refuses (ConfigError naming config.height/config.width) a working size whose train step cannot fit in the
+    memory of one device of the mesh (`memory.training_bytes`, a lower bound). CPU devices share this machine's
+    RAM, so there the rows of all of this process's devices count together."""
+    device = devices[0]
+    share = 1
+    if device.platform == "cpu":
+        share = max(1, sum(1 for d in devices if d.process_index == jax.process_index()))
+    rows, cycles = rows_per_device * share, cycles_per_device * share
+    needed = memory.training_bytes(height, width, rows, cycles)
+    what = (f"a train step of {rows} pair-forwards{' on this machine' if share > 1 else ''} (at least "
+            f"{memory.TRAIN_BYTES_PER_PIXEL} bytes per pixel each)")
+    try:
+        memory.check_fits("config.height/config.width", height, width, needed, what, device)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
 
 
 def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = None,
@@ -349,6 +457,7 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     values[OptimizerConfig]["lr_milestones"] = tuple(int(m) for m in values[OptimizerConfig]["lr_milestones"])
     typed = {cls: _typed(cls, values[cls], name) for name, cls in SECTIONS if cls is not losses.LossConfig}
     try:
+        check_floats(values[losses.LossConfig], "loss")
         typed[losses.LossConfig] = losses.LossConfig.from_dict(values[losses.LossConfig])
         check_counts(typed[losses.LossConfig], "loss")
     except (ValueError, TypeError) as e:
@@ -385,6 +494,7 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     if micro_batch < -1 or (micro_batch > 0 and rows_per_device % micro_batch):
         raise ConfigError(f"config.micro_batch={micro_batch} must be 0 (no micro-batching), -1 (auto) or divide the "
                           f"{rows_per_device} pair-forwards per device")
+    _check_training_memory(opts.height, opts.width, devices, rows_per_device, batch // num_devices)
 
     return Run(
         model=ModelSpec(model_cfg, opts.separate_networks, opts.dtype, opts.remat, opts.conv_weight_grad),

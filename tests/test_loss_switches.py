@@ -159,7 +159,7 @@ def test_gradient_clipping_by_global_norm():
     ("loss.scales=coarse", r"loss.scales must be one of \('all', 'finest'\)"),
     ("loss.smoothness_order=3", r"loss.smoothness_order must be one of \(1, 2\)"),
     ("loss.occlusion_start_step=-5", r"loss.occlusion_start_step must be an integer >= 0"),
-    ("clip_grad_norm=-1.0", r"config.clip_grad_norm must be >= 0"),
+    ("clip_grad_norm=-1.0", r"config.clip_grad_norm=-1.0: must be a number >= 0"),
 ])
 def test_unknown_switch_values_are_one_config_error(item, match):
     c = recipe.single_run(configs.load("demo:short"))

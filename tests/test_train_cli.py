@@ -66,8 +66,8 @@ def test_main_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
     for argv, match in (
             (["--config=dmeo"], "unknown config 'dmeo'"),
             (["--config=default:local", "--config.model.nmae=1"], "did you mean --config.model.name"),
-            (["--config=default:local", "--config.lr=inf"], "config.lr must be a finite number > 0, got inf"),
-            (["--config=default:local", "--config.lr=0.0"], "config.lr must be a finite number > 0")):
+            (["--config=default:local", "--config.lr=inf"], "config.lr=inf: must be a number > 0 float32 can hold"),
+            (["--config=default:local", "--config.lr=0.0"], "config.lr=0.0: must be a number > 0")):
         rc = train.main([*argv, f"--workdir={wd}"])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and err[0].startswith("error: ") and match in err[0], err
