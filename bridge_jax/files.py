@@ -46,7 +46,8 @@ class OutputExistsError(ValueError):
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> str:
-    """Write `data` to `path` atomically (temporary file in the same folder, then rename). Returns the path."""
+    """Write `data` to `path` atomically (temporary file in the same folder, then rename). Returns the path; an
+    OSError (a full disk, ...) names `path`."""
     path = os.path.abspath(os.fspath(path))
     folder = os.path.dirname(path)
     os.makedirs(folder, exist_ok=True)
@@ -56,9 +57,11 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> str:
             f.write(data)
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get the usual permissions
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.filename is None and e.strerror:
+            e.filename = path  # a full disk fails in f.write, whose error names no file
         raise
     return path
 
@@ -88,7 +91,9 @@ def staged_dir(out_dir: str | os.PathLike, *, overwrite: bool = False,
                option: str = "--overwrite") -> Iterator[str]:
     """Yields a new temporary folder beside `out_dir`; when the block ends without an error, it replaces
     `out_dir` (an existing folder is moved aside first and deleted only after the rename), otherwise it is
-    deleted. `out_dir` is refused up front when it exists and is not empty, unless `overwrite`."""
+    deleted. `out_dir` is refused up front when it exists and is not empty, unless `overwrite`. An OSError
+    from the block that names a file in the temporary folder names it under `out_dir` instead
+    (`output_path_error`): the temporary folder is gone when the error is shown."""
     check_output_dir(out_dir, overwrite, option)
     out_dir = os.path.abspath(os.fspath(out_dir))
     parent = os.path.dirname(out_dir)
@@ -96,7 +101,11 @@ def staged_dir(out_dir: str | os.PathLike, *, overwrite: bool = False,
     tmp = tempfile.mkdtemp(prefix=_temp_prefix(out_dir, "tmp"), dir=parent)
     try:
         os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700 folders
-        yield tmp
+        try:
+            yield tmp
+        except OSError as e:
+            output_path_error(e, tmp, out_dir)
+            raise
         if os.path.lexists(out_dir):
             old = tempfile.mkdtemp(prefix=_temp_prefix(out_dir, "old"), dir=parent)
             os.rename(out_dir, os.path.join(old, "previous"))
@@ -107,6 +116,22 @@ def staged_dir(out_dir: str | os.PathLike, *, overwrite: bool = False,
     finally:
         if os.path.exists(tmp):
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def output_path_error(error: OSError, tmp: str, out_dir: str) -> OSError:
+    """Renames the file names of `error` (`filename`, `filename2`) that lie in the temporary folder `tmp` to
+    the same place in `out_dir`, the folder the user asked for; returns `error`."""
+    for attr in ("filename", "filename2"):
+        name = getattr(error, attr, None)
+        name = os.fspath(name) if isinstance(name, os.PathLike) else name
+        if not isinstance(name, str):
+            continue  # None, a file descriptor or bytes: nothing to rename
+        name = os.path.abspath(name)
+        if name == tmp:
+            setattr(error, attr, out_dir)
+        elif name.startswith(tmp + os.sep):
+            setattr(error, attr, os.path.join(out_dir, os.path.relpath(name, tmp)))
+    return error
 
 
 # ----------------------------------------------------------------------------------------------------------

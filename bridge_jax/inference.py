@@ -656,18 +656,24 @@ def trained_working_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
 
 def resize_notice(predictor: Predictor, height: int, width: int, factor: float = 2.0) -> Optional[str]:
-    """One line for the user when an input of `height x width` is shrunk by more than `factor` per side to run
-    (fine structure and small motions are lost there), naming the native size; None otherwise."""
+    """One line for the user when an input of `height x width` is resized by more than `factor` on a side to
+    run, naming the native size where that is another one: shrunk (fine structure and small motions are lost
+    there), or upscaled (each pair then costs a network call at the larger working size and gains no detail).
+    None otherwise."""
     wh, ww = predictor.working_size(height, width)
-    shrink = max(height / wh, width / ww)
-    if shrink <= factor:
-        return None
     native = native_working_size(predictor.model_name, height, width, predictor.max_pixels)
     hint = "" if (wh, ww) == native else f"; --working-size native runs it at {native[0]}x{native[1]}"
-    if shrink > REDUCED_READ_NOTICE:
-        hint += ("; it is decoded at a reduced size to save memory, and the maps are written at the input's "
-                 f"{height}x{width}")
-    return f"note: the {height}x{width} input runs at {wh}x{ww} ({shrink:.1f}x smaller per side){hint}"
+    shrink = max(height / wh, width / ww)
+    if shrink > factor:
+        if shrink > REDUCED_READ_NOTICE:
+            hint += ("; it is decoded at a reduced size to save memory, and the maps are written at the input's "
+                     f"{height}x{width}")
+        return f"note: the {height}x{width} input runs at {wh}x{ww} ({shrink:.1f}x smaller per side){hint}"
+    grow = max(wh / height, ww / width)
+    if grow > factor:
+        return (f"note: the {height}x{width} input runs at {wh}x{ww} ({grow:.1f}x larger per side: upscaled, each "
+                f"pair costs a {wh}x{ww} network call){hint}")
+    return None
 
 
 def load_predictor(path: str | os.PathLike, *, height: int | None = None, width: int | None = None,

@@ -46,9 +46,11 @@ sibling folder and renamed at the end, so an interrupted run leaves nothing unde
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from typing import Optional
@@ -355,6 +357,9 @@ class Runner:
 # Writing
 
 
+DISK_FULL_BYTES = 1 << 20
+"""A failed write that gives no reason, on a file system with less free space than this, says "the disk is full"."""
+
 PERCENTILE_SAMPLE = 1 << 22
 """Colour scales (99th percentiles) of maps with more pixels are taken from an evenly strided sample of them."""
 
@@ -378,6 +383,25 @@ def _by_rows(fn: Callable, *maps: np.ndarray) -> np.ndarray:
     for r0 in range(rows, h, rows):
         out[r0:r0 + rows] = fn(*(m[r0:r0 + rows] for m in maps))
     return out
+
+
+def save_file(path: str, write: Callable[[str, object], object], data) -> None:
+    """`write(path, data)`; an OSError that names no file (a full disk fails in a write call; numpy and OpenCV
+    raise one with no error number, or only say that they failed) is raised again naming `path`, so that the
+    one-line error says which output could not be written (under the output folder the user named:
+    `files.staged_dir`)."""
+    try:
+        write(path, data)
+    except OSError as e:
+        if e.filename is not None:
+            raise
+        reason = e.strerror or "cannot write it"
+        if not e.strerror and str(e) and path not in str(e):  # numpy's "N requested and M written"
+            reason += f" ({e})"
+        with contextlib.suppress(OSError):
+            if not e.strerror and shutil.disk_usage(os.path.dirname(path)).free < DISK_FULL_BYTES:
+                reason += "; the disk is full"
+        raise OSError(e.errno, reason, path) from e
 
 
 class Writer:
@@ -404,20 +428,24 @@ class Writer:
         self.written.setdefault(index, set()).add(sub)
         return os.path.join(d, f"{self.name(index)}{ext}")
 
+    def _save(self, sub: str, index: int, ext: str, write: Callable[[str, object], object], data) -> None:
+        """`write(path, data)` for the file of frame `index` in `sub` (`_path`), with its OSError naming it."""
+        save_file(self._path(sub, index, ext), write, data)
+
     def flow(self, index: int, flow: np.ndarray, sub: str = "flow") -> np.ndarray:
         if self.max_flow is None:
             sample = _sample(flow.reshape(-1, 2)).astype(np.float64)
             self.max_flow = max(1.0, float(np.percentile(np.sqrt((sample ** 2).sum(-1)), 99)))
         if "png" in self.raw:  # before the colour picture: the two large arrays are never held together
             valid = np.broadcast_to(True, flow.shape[:2])
-            files.write_bytes(self._path(f"{sub}_kitti", index, ".png"),
-                              kitti.encode_png16(_by_rows(kitti.flow_png_array, flow, valid), "flow"))
+            self._save(f"{sub}_kitti", index, ".png", files.write_bytes,
+                       kitti.encode_png16(_by_rows(kitti.flow_png_array, flow, valid), "flow"))
         color = _by_rows(lambda f: visualize.flow_to_color(f, max_flow=self.max_flow), flow)
-        visualize.write_image(self._path(sub, index, ".png"), color)
+        self._save(sub, index, ".png", visualize.write_image, color)
         if "npy" in self.raw:
-            np.save(self._path(f"{sub}_npy", index, ".npy"), np.asarray(flow, np.float32))
+            self._save(f"{sub}_npy", index, ".npy", np.save, np.asarray(flow, np.float32))
         if "flo" in self.raw:
-            flowio.write_flo(self._path(f"{sub}_flo", index, ".flo"), flow)
+            self._save(f"{sub}_flo", index, ".flo", flowio.write_flo, flow)
         self.counts[sub] = self.counts.get(sub, 0) + 1
         return color
 
@@ -425,28 +453,28 @@ class Writer:
         if self.max_disp is None:
             self.max_disp = max(1.0, 1.1 * float(np.percentile(_sample(disp.reshape(-1)), 99)))
         color = _by_rows(lambda d: visualize.disparity_to_color(d, vmax=self.max_disp), disp)
-        visualize.write_image(self._path(sub, index, ".png"), color)
+        self._save(sub, index, ".png", visualize.write_image, color)
         if "png" in self.raw:
             valid = np.broadcast_to(True, disp.shape)
-            files.write_bytes(self._path(f"{sub}_kitti", index, ".png"), kitti.encode_png16(
+            self._save(f"{sub}_kitti", index, ".png", files.write_bytes, kitti.encode_png16(
                 _by_rows(lambda d, v: kitti.disp_png_array(np.clip(d, 1 / 256, 255.0), v), disp, valid), "disparity"))
         if "npy" in self.raw:
-            np.save(self._path(f"{sub}_npy", index, ".npy"), np.asarray(disp, np.float32))
+            self._save(f"{sub}_npy", index, ".npy", np.save, np.asarray(disp, np.float32))
         if "pfm" in self.raw:
-            flowio.write_pfm(self._path(f"{sub}_pfm", index, ".pfm"), disp)
+            self._save(f"{sub}_pfm", index, ".pfm", flowio.write_pfm, disp)
         self.counts[sub] = self.counts.get(sub, 0) + 1
         if self.focal and self.baseline and sub == "disparity":
             def depth(d):
                 return metrics.disparity_to_depth(d, self.focal, self.baseline)
 
-            visualize.write_image(self._path("depth", index, ".png"),
-                                  _by_rows(lambda d: visualize.depth_to_color(depth(d)), disp))
+            self._save("depth", index, ".png", visualize.write_image,
+                       _by_rows(lambda d: visualize.depth_to_color(depth(d)), disp))
             if "npy" in self.raw or "pfm" in self.raw:
                 full = depth(disp)
                 if "npy" in self.raw:
-                    np.save(self._path("depth_npy", index, ".npy"), full.astype(np.float32, copy=False))
+                    self._save("depth_npy", index, ".npy", np.save, full.astype(np.float32, copy=False))
                 if "pfm" in self.raw:
-                    flowio.write_pfm(self._path("depth_pfm", index, ".pfm"), full)
+                    self._save("depth_pfm", index, ".pfm", flowio.write_pfm, full)
             self.counts["depth"] = self.counts.get("depth", 0) + 1
         return color
 
@@ -458,19 +486,19 @@ class Writer:
             path = os.path.join(self.root, "video.mp4")
             self.video = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), self.video_fps or 10.0, (w, h))
             if not self.video.isOpened():
-                raise OSError(f"cannot open a video writer for {path}")
+                raise OSError(None, "cannot open a video writer (OpenCV) for it", path)
         self.video.write(np.ascontiguousarray(img[..., ::-1]))
 
     def legends(self) -> None:
         if self.max_flow is not None:
-            visualize.write_image(os.path.join(self.root, "legend_flow.png"),
-                                  visualize.color_wheel_legend(256, max_flow=self.max_flow))
+            save_file(os.path.join(self.root, "legend_flow.png"), visualize.write_image,
+                      visualize.color_wheel_legend(256, max_flow=self.max_flow))
         if self.max_disp is not None:
-            visualize.write_image(os.path.join(self.root, "legend_disparity.png"),
-                                  visualize.colorbar(0.0, self.max_disp, "magma", unit="px", label="disparity"))
+            save_file(os.path.join(self.root, "legend_disparity.png"), visualize.write_image,
+                      visualize.colorbar(0.0, self.max_disp, "magma", unit="px", label="disparity"))
         if self.counts.get("depth"):
-            visualize.write_image(os.path.join(self.root, "legend_depth.png"),
-                                  visualize.colorbar(2.0, 80.0, "magma", unit="m", label="depth", inverse=True))
+            save_file(os.path.join(self.root, "legend_depth.png"), visualize.write_image,
+                      visualize.colorbar(2.0, 80.0, "magma", unit="m", label="depth", inverse=True))
 
     def close(self) -> None:
         if self.video is not None:
@@ -557,8 +585,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
                 "mapping": _mapping(source, writer.written)}
         if info:
             desc.update(info)
-        with open(os.path.join(tmp, "predict.json"), "w") as f:
-            json.dump(desc, f, indent=1)
+        files.write_text(os.path.join(tmp, "predict.json"), json.dumps(desc, indent=1))
     return desc
 
 
@@ -648,8 +675,7 @@ def kitti_submission(predictor, data_dir: str, out_dir: str, *, split: Optional[
             bar.update(len(frames))
         desc = {"kitti_year": year, "data_dir": os.path.abspath(data_dir), "split": split, "frames": len(specs),
                 "folders": list(folders)}
-        with open(os.path.join(tmp, "submission.json"), "w") as f:
-            json.dump(desc, f, indent=1)
+        files.write_text(os.path.join(tmp, "submission.json"), json.dumps(desc, indent=1))
     return desc
 
 

@@ -187,6 +187,12 @@ def _sequence_cycles(seq_dir: str, name: str) -> list[dict]:
     return out
 
 
+def not_a_folder(path: str) -> str:
+    """Why `path` cannot be read as a data folder, for an error message: "is a file, not a folder" when it
+    exists as something else, else "does not exist"."""
+    return "is a file, not a folder" if os.path.exists(path) else "does not exist"
+
+
 def _is_sequence(d: str) -> bool:
     return os.path.isdir(os.path.join(d, "left")) and os.path.isdir(os.path.join(d, "right"))
 
@@ -200,7 +206,7 @@ def folder_cycles(root: str) -> list[dict]:
     """
     root = os.path.abspath(os.path.expanduser(root))
     if not os.path.isdir(root):
-        raise ValueError(f"stereo video folder {root!r} does not exist; {EXPECTED_LAYOUT}")
+        raise ValueError(f"stereo video folder {root!r} {not_a_folder(root)}; {EXPECTED_LAYOUT}")
     records: list[dict] = []
     if _is_sequence(root):
         records = _sequence_cycles(root, os.path.basename(root))

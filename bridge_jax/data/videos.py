@@ -47,10 +47,25 @@ def _open(path: str):
     return cap
 
 
-def video_frames(path: str) -> Iterator[np.ndarray]:
-    """The frames of a video file as uint8 RGB `(H, W, 3)`, in order; VideoError when none can be read."""
+def note(text: str) -> None:
+    """Prints `note: <text>` to stderr: something the user should know, though the run goes on."""
+    print(f"note: {text}", file=sys.stderr, flush=True)
+
+
+def _stated_count(cap) -> Optional[int]:
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    return n if n > 0 else None
+
+
+def video_frames(path: str, *, note_short: bool = True) -> Iterator[np.ndarray]:
+    """The frames of a video file as uint8 RGB `(H, W, 3)`, in order; VideoError when none can be read.
+
+    Read to its end, a video that decodes to fewer frames than its container states (a truncated or damaged
+    file) prints one `note` naming both counts, unless `note_short` is False (`stereo_frames` words it for the
+    pair instead)."""
     cap = _open(path)
     try:
+        stated = _stated_count(cap)
         n = 0
         while True:
             ok, frame = cap.read()
@@ -60,6 +75,9 @@ def video_frames(path: str) -> Iterator[np.ndarray]:
             yield np.ascontiguousarray(frame[..., ::-1])
         if n == 0:
             raise VideoError(f"cannot read any frame from video {path}")
+        if note_short and stated is not None and n < stated:
+            note(f"video {path} has {n} decodable frames, its header states {stated} (a truncated or damaged "
+                 f"file?): using those {n}")
     finally:
         cap.release()
 
@@ -68,9 +86,8 @@ def video_info(path: str) -> tuple[Optional[int], Optional[float]]:
     """(frame count, frames per second) as the container states them (None when it does not)."""
     cap = _open(path)
     try:
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = cap.get(cv2.CAP_PROP_FPS)
-        return (n if n > 0 else None), (fps if fps and fps > 0 else None)
+        return _stated_count(cap), (fps if fps and fps > 0 else None)
     finally:
         cap.release()
 
@@ -84,21 +101,54 @@ def split_side_by_side(frame: np.ndarray, path: str = "video") -> tuple[np.ndarr
 
 
 def stereo_frames(paths: Sequence[str], side_by_side: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(left, right) uint8 RGB frames of a stereo video: two files (left, right; the shorter one ends it) or one
-    side-by-side file. VideoError naming the file when sizes disagree."""
+    """(left, right) uint8 RGB frames of a stereo video: two files (left, right) or one side-by-side file.
+    VideoError naming the file when sizes disagree. Two files of different lengths give as many pairs as the
+    shorter one has frames, with one `note` naming both files and their counts."""
     paths = list(paths)
     if len(paths) == 2 and not side_by_side:
-        for i, (a, b) in enumerate(zip(video_frames(paths[0]), video_frames(paths[1]))):
-            if a.shape != b.shape:
-                raise VideoError(f"frame {i}: {paths[0]} is {a.shape[0]}x{a.shape[1]} but {paths[1]} is "
-                                 f"{b.shape[0]}x{b.shape[1]} (left and right videos must have the same size)")
-            yield a, b
+        yield from _paired_frames(paths[0], paths[1])
         return
     if len(paths) != 1 or not side_by_side:
         raise VideoError(f"expected two videos (left, right) or one side-by-side video, got {len(paths)} "
                          f"file(s){'' if side_by_side or len(paths) != 1 else ' without --side-by-side'}")
     for frame in video_frames(paths[0]):
         yield split_side_by_side(frame, paths[0])
+
+
+def _paired_frames(left_path: str, right_path: str) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """`stereo_frames` of a left and a right video file: pairs until either ends, then one `note` when the
+    two differ in length (or a file decodes to fewer frames than its header states)."""
+    paths = (left_path, right_path)
+    stated = [video_info(p)[0] for p in paths]
+    streams = [video_frames(p, note_short=False) for p in paths]
+    try:
+        i = 0
+        while True:
+            # both are read every time: when one ends, whether the other had a frame more tells who was short
+            a, b = (next(s, None) for s in streams)
+            if a is None or b is None:
+                break
+            if a.shape != b.shape:
+                raise VideoError(f"frame {i}: {left_path} is {a.shape[0]}x{a.shape[1]} but {right_path} is "
+                                 f"{b.shape[0]}x{b.shape[1]} (left and right videos must have the same size)")
+            yield a, b
+            i += 1
+    finally:
+        for s in streams:
+            s.close()
+
+    def counted(k: int) -> str:  # file k ended after i frames
+        header = f" (its header states {stated[k]}: a truncated or damaged file?)" if (stated[k] or 0) > i else ""
+        return f"{paths[k]} has {i} frames{header}"
+
+    if (a is None) != (b is None):  # one ended first: the other is cut to its length
+        k = 0 if a is None else 1
+        other = stated[1 - k] if (stated[1 - k] or 0) > i else "more"
+        note(f"{counted(k)}, {paths[1 - k]} {other}: using the first {i} of each")
+    else:
+        for k in (0, 1):
+            if (stated[k] or 0) > i:
+                note(f"{counted(k)}: using those {i}")
 
 
 def extract_stereo_video(paths: Sequence[str], out_dir: str, *, side_by_side: bool = False, every: int = 1,

@@ -122,8 +122,8 @@ def val_cycles(data_cfg_or_dir: Any, height: int, width: int, max_cycles: int) -
         raise ValueError(f"{OPTION}: need at least 1 validation cycle, got max_cycles={max_cycles}")
     val_dir = os.path.abspath(os.path.expanduser(val_dir))
     if not os.path.isdir(val_dir):
-        raise ValueError(f"{OPTION}={val_dir!r} does not exist (held-out stereo video for validation; "
-                         f"{folders.EXPECTED_LAYOUT})")
+        raise ValueError(f"{OPTION}={val_dir!r} {folders.not_a_folder(val_dir)} (held-out stereo video for "
+                         f"validation; {folders.EXPECTED_LAYOUT})")
     if train_dir and os.path.realpath(train_dir) == os.path.realpath(val_dir):
         log.warning("%s=%s is also the training data folder: validation frames are training frames", OPTION, val_dir)
     where = f"{OPTION}={val_dir!r}"
