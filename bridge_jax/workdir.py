@@ -51,14 +51,17 @@ def scalar(v) -> float:
 class MetricsLogger:
     """metrics.jsonl + TensorBoard (tensorboardX) on process 0; no-ops elsewhere.
 
-    `resume_step`: the step a resumed run restarts from. Records of later steps (written by the previous run
-    after its last checkpoint, and redone now) are dropped from metrics.jsonl and TensorBoard's events are
-    purged past it, so both read as one run.
+    `resume_step`: the step the run (re)starts from, 0 for a start from scratch; None appends to what is there.
+    Records of later steps (written by the previous run after its last checkpoint, and redone now) are dropped
+    from metrics.jsonl and TensorBoard's events are purged past it, so both read as one run. A start from
+    scratch drops every record of the run, those of step 0 too (a killed attempt that never finished a
+    checkpoint logged steps that this start logs again, its step-0 validation included).
 
     `stage`: {"name", "offset"} of a recipe stage (`bridge_jax.recipe`) logging into the recipe's workdir: every
     record carries "stage" (its name) and "stage_step" (the step the caller passes, inside the stage), and its
     "step" and TensorBoard step are offset by the steps of the stages before it. A stage always truncates to
-    its own restart (`resume_step`, 0 for a fresh start): records a killed attempt of it wrote are dropped."""
+    its own restart (`resume_step`, 0 for a fresh start): records a killed attempt of it wrote are dropped (at
+    the stage's first step, which is the previous stage's last, only its own)."""
 
     def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None,
                  stage: Optional[dict] = None):
@@ -72,10 +75,14 @@ class MetricsLogger:
             resume_step = resume_step or 0
         if enabled:
             path = os.path.join(workdir, METRICS_JSONL)
+            purge_step = None
             if resume_step is not None:
-                truncate_metrics(path, self.offset + resume_step)
-            self.tb = SummaryWriter(os.path.join(workdir, TENSORBOARD_DIR),
-                                    purge_step=None if resume_step is None else self.offset + int(resume_step) + 1)
+                restart = int(resume_step) == 0
+                truncate_metrics(path, self.offset + int(resume_step), restart=restart,
+                                 stage=stage["name"] if stage else None)
+                # TensorBoard purges by step alone: a stage's first step keeps the previous stage's events
+                purge_step = self.offset + int(resume_step) + (0 if restart and not stage else 1)
+            self.tb = SummaryWriter(os.path.join(workdir, TENSORBOARD_DIR), purge_step=purge_step)
             self.jsonl = open(path, "a")
 
     def _head(self, step: int, kind: str) -> dict:
@@ -129,9 +136,13 @@ class MetricsLogger:
             self.jsonl.close()
 
 
-def truncate_metrics(path: str, resume_step: int) -> int:
+def truncate_metrics(path: str, resume_step: int, *, restart: bool = False, stage: Optional[str] = None) -> int:
     """Drops the records of steps after `resume_step` from the metrics.jsonl at `path` (rewritten atomically);
-    returns how many were dropped. A torn last line (a crash mid-write) is dropped too."""
+    returns how many were dropped. A torn last line (a crash mid-write) is dropped too.
+
+    `restart`: the run starts over at `resume_step` (from scratch, no checkpoint), so the records of that step
+    are written again and go too: all of them, or only those of recipe stage `stage` when given (the step a
+    stage starts at is the previous stage's last, whose records stay)."""
     if not os.path.exists(path):
         return 0
     kept, dropped = [], 0
@@ -139,7 +150,9 @@ def truncate_metrics(path: str, resume_step: int) -> int:
         for line in f:
             try:
                 rec = json.loads(line)
-                keep = int(rec.get("step", 0)) <= resume_step
+                step = int(rec.get("step", 0))
+                keep = step < resume_step or (step == resume_step and not (
+                    restart and (stage is None or rec.get("stage") == stage)))
             except (json.JSONDecodeError, TypeError, ValueError, AttributeError):
                 keep = False
             if keep and line.endswith("\n"):
