@@ -52,7 +52,9 @@ environment), so that the next run of the same code and config neither traces no
 Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
 for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
 full disk included (one line naming the option, file or folder; `--debug` or BRIDGE_JAX_DEBUG=1 shows the
-traceback); 1 training diverged (too many non-finite steps in a row).
+traceback), a workdir in use by another trainer and a resume with another config included; 1 training diverged
+(too many non-finite steps in a row); 141 the output pipe closed (`--list-config | head`): stopped quietly, as
+git and the coreutils do.
 """
 
 from __future__ import annotations
@@ -951,6 +953,7 @@ def _set_verbosity(level: str) -> None:
     logging.getLogger("bridge_jax").setLevel(num)
 
 
+@cli.entry_point
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """`bridge-train` / `bridge-train`; returns the exit code (see the module docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
