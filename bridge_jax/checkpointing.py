@@ -599,8 +599,12 @@ class TrainCheckpointer:
         self._state_bytes: int | None = None
 
     def latest_step(self) -> int | None:
-        """The newest step saved, known-broken steps excluded (the last good checkpoint)."""
-        steps = [s for s in self.manager.all_steps() if s not in self.broken]
+        """The newest step whose save has finished (the last good checkpoint): known-broken steps, a save still
+        in flight (orbax lists an async save's step as soon as it starts) and a failed one (no step dir) are
+        excluded."""
+        in_flight = self._saving if self._saving is not None and self.manager.is_saving_in_progress() else None
+        steps = [s for s in self.manager.all_steps()
+                 if s not in self.broken and s != in_flight and (Path(self.directory) / str(s)).is_dir()]
         return max(steps) if steps else None
 
     def all_steps(self) -> list[int]:

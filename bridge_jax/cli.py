@@ -1,10 +1,18 @@
 """What the command-line entry points share: the parser with the full module docstring as its help epilog,
-option parsing helpers, and the one-line error report (tracebacks only with --debug or BRIDGE_JAX_DEBUG=1)."""
+option parsing helpers, the one-line error report (tracebacks only with --debug or BRIDGE_JAX_DEBUG=1), and
+`entry_point`, which every command's `main` is wrapped in.
+
+A closed output pipe (`bridge-zoo | head -1`, `bridge-train --list-config | head`): the command stops quietly,
+nothing on stderr, exit code 141 (`EXIT_PIPE_CLOSED`), as git and the coreutils do (they die of SIGPIPE, which a
+shell reports as 128 + 13 = 141; `set -o pipefail` sees it, a plain pipeline does not).
+"""
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
+import select
 import sys
 import textwrap
 import warnings
@@ -122,9 +130,72 @@ def add_polish_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> 
                              "network's maps as they are; default: what a shipped model's card recommends, else none")
 
 
+EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE: how a shell reports git or a coreutils command whose reader went away
+
+
+def _closed_outputs() -> list[int]:
+    """The file descriptors of stdout and stderr that are pipes whose reader has gone (poll reports an error on
+    the write end): a broken pipe of the output, as opposed to some other pipe of the program breaking."""
+    if not hasattr(select, "poll"):  # no poll (Windows): take it to be stdout
+        return [1]
+    closed = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError):  # replaced by a test's capture, or closed
+            continue
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if any(events & select.POLLERR for _, events in poller.poll(0)):
+            closed.append(fd)
+    return closed
+
+
+def _stop_writing(fds: list[int]) -> int:
+    """Points the closed outputs `fds` at the null device (what Python still buffers for them would fail again
+    when flushed at exit, with an "Exception ignored" message) and returns `EXIT_PIPE_CLOSED`."""
+    for fd in fds:
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
+        except OSError:
+            pass
+    return EXIT_PIPE_CLOSED
+
+
+def entry_point(main):
+    """Wraps a command's `main(argv=None) -> exit code` (what pyproject's [project.scripts] and `python -m`
+    call): when the reader of its output goes away, the command ends quietly with `EXIT_PIPE_CLOSED` instead of
+    a BrokenPipeError traceback, also when the break shows only as the output is flushed (small outputs sit in
+    Python's buffer until then) or in argparse's --help (a SystemExit)."""
+
+    @functools.wraps(main)
+    def wrapped(*args, **kwargs):
+        try:
+            try:
+                code = main(*args, **kwargs)
+            except SystemExit:
+                sys.stdout.flush()  # here, where a closed pipe can still be caught, not at interpreter exit
+                raise
+            sys.stdout.flush()
+            return code
+        except BrokenPipeError:
+            closed = _closed_outputs()
+            if not closed:
+                raise
+            return _stop_writing(closed)
+
+    return wrapped
+
+
 def report_error(error: BaseException, code: int = 2, debug: bool | None = None) -> int:
     """Prints `error: <first line of the message>` to stderr and returns the exit code (user mistakes are one
-    line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1)."""
+    line, never a traceback; the traceback too with `debug` or BRIDGE_JAX_DEBUG=1). A closed output pipe (the
+    commands catch OSError, BrokenPipeError included) is no error: nothing is printed, `EXIT_PIPE_CLOSED`."""
+    closed = _closed_outputs() if isinstance(error, BrokenPipeError) else []
+    if closed:
+        return _stop_writing(closed)
     if debug or (debug is None and debug_enabled()):
         import traceback
         traceback.print_exception(error, file=sys.stderr)

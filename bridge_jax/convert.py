@@ -607,6 +607,7 @@ def build_parser():
     return ap
 
 
+@cli.entry_point
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:

@@ -124,6 +124,7 @@ def build_parser():
     return parser
 
 
+@cli.entry_point
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     # XLA's "Very slow compile?" banner goes to the training workdir's xla.log, not into the progress bar

@@ -158,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@cli.entry_point
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     console.install(enabled=not cli.debug_enabled(args))  # XLA's slow-compile banner stays out of the console

@@ -787,6 +787,7 @@ def predictor_from_args(args: argparse.Namespace, num_pairs: Optional[int]):
     return predictor
 
 
+@cli.entry_point
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     console.install(enabled=not cli.debug_enabled(args))  # XLA's slow-compile banner stays out of the console

@@ -11,7 +11,11 @@ r"""Training: `bridge-train --config=NAME[:arg] --workdir=DIR [--config.KEY=VALU
 `--config` is a config shipped in the package, by name from any directory (listed below; `:arg` picks a
 variant, e.g. `full2:local`), or the path of a Python file with `get_config(arg)`. `--config.KEY=VALUE`
 overrides any field (dotted, Python literals); `--list-config [NAME]` prints every field of a config with its
-value and meaning. A run re-started with the same workdir resumes where it stopped.
+value and meaning. A run re-started with the same workdir resumes where it stopped, with the config it was
+started with: a resume whose config differs from the workdir's config.json is refused with the fields listed
+(`field old -> new`) unless `--allow-config-change`; the training length, the log / validation / checkpoint
+intervals, the devices, micro-batching and caches may change without it (`RESUME_MAY_CHANGE`). One trainer per
+workdir: a second one on a workdir in use is refused, naming the PID of the first (`.lock` below).
 
 One run, top to bottom (sections of `train_and_evaluate`): parse and check the config (`setup.parse`) and build
 the data pipeline (nothing is written to the workdir before every input is validated), create model +
@@ -22,7 +26,8 @@ checkpoints, metrics.jsonl / TensorBoard / progress bar, periodic validation on 
 with exact ground truth, or your own held-out frames from `config.data.val_dir`, scored photometrically).
 
 Workdir layout (`bridge_jax.workdir`):
-    config.json, model.json         the run's config and the model description (params-only loaders)
+    config.json, model.json         the run's config (as last started: a resume is compared with it) and the
+                                    model description (params-only loaders)
     checkpoints/<step>/{state,data} orbax: train state + grain iterator state
     metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
     tensorboard/                    tensorboardX event files (scalars, images)
@@ -35,6 +40,8 @@ Workdir layout (`bridge_jax.workdir`):
                                     "step_cache": hit / written / off (`executable_cache`)
     xla.log                         XLA's "Very slow compile?" banners, kept out of the console (not with
                                     --debug)
+    .lock                           locked (fcntl.flock) by the trainer working in the workdir, its PID inside;
+                                    the lock ends with that process, however it ends
 
 XLA keeps its compiled train step in a per-user cache folder (`--config.compilation_cache_dir`: "auto" =
 $BRIDGE_JAX_CACHE_DIR, else ~/.cache/bridge_jax/xla; "workdir" = <workdir>/xla_cache; "" = off), so a resumed
@@ -45,11 +52,14 @@ environment), so that the next run of the same code and config neither traces no
 Exit codes: 0 finished; 75 interrupted by SIGTERM/SIGINT with a checkpoint saved (run again to resume); 130 (143
 for SIGTERM) a second signal: exits at once without saving (status "aborted"); 2 bad input or environment, a
 full disk included (one line naming the option, file or folder; `--debug` or BRIDGE_JAX_DEBUG=1 shows the
-traceback); 1 training diverged (too many non-finite steps in a row).
+traceback), a workdir in use by another trainer and a resume with another config included; 1 training diverged
+(too many non-finite steps in a row); 141 the output pipe closed (`--list-config | head`): stopped quietly, as
+git and the coreutils do.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -145,8 +155,86 @@ def _validate_data(predictor: inference.Predictor, params, val_data, batch: int,
 # Pieces of a run
 # ##########################################################################################################
 
-def _check_workdir(run: setup.Run, workdir: str) -> bool:
-    """Whether `workdir` holds a run to resume; a workdir of another model is refused (nothing is written)."""
+# Fields that a resumed run may set otherwise than the run it resumes (without --allow-config-change): how long
+# to train (the lr schedule counts in epochs of `loop.steps_per_epoch`, not in the total, so extending a run does
+# not change the steps already planned), how often to log, validate and checkpoint, and how the same step is
+# computed and fed (another machine, more devices, another cache folder). Every other field changes what is
+# trained or what the validation numbers mean.
+RESUME_MAY_CHANGE = (
+    "loop.num_train_steps", "loop.num_epochs", "loop.log_every", "loop.eval_every", "loop.image_every",
+    "loop.eval_at_start", "loop.checkpoint_every", "loop.keep_checkpoints", "loop.async_checkpoints",
+    "loop.progress_bar", "loop.max_nonfinite_in_row", "eval.batch", "compilation_cache_dir", "num_devices",
+    "micro_batch", "remat", "conv_weight_grad", "data.prefetch", "data.read_threads", "data.worker_buffer_size",
+    "data.prescan", "data.max_skip", "distributed.*")
+
+
+def _may_change_on_resume(field: str) -> bool:
+    return any(field == f or (f.endswith(".*") and field.startswith(f[:-1])) for f in RESUME_MAY_CHANGE)
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_changes(old: dict, new: dict) -> dict[str, tuple[Any, Any]]:
+    """{dotted field: (old value, new value)} of the fields whose values differ between two configs as JSON (a
+    workdir's config.json and `setup.Run.config_json`), in the order of `new`. A field only one of them has
+    (added or moved by another version of the package) is not compared."""
+    before, after = _flatten(old), _flatten(new)
+    return {k: (before[k], v) for k, v in after.items() if k in before and before[k] != v}
+
+
+def describe_changes(changes: dict[str, tuple[Any, Any]], limit: int = 8) -> str:
+    """The changes on one line, "lr 0.0001 -> 0.0002, seed 0 -> 1" (at most `limit` fields, then how many more)."""
+    parts = [f"{k} {old!r} -> {new!r}" for k, (old, new) in list(changes.items())[:limit]]
+    more = len(changes) - limit
+    return ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+
+
+def _config_changes(run: setup.Run, workdir: str) -> dict[str, tuple[Any, Any]]:
+    """`config_changes` from the config.json of `workdir` (the config it was last started with) to this run's
+    config; {} without a readable config.json."""
+    try:
+        with open(os.path.join(workdir, checkpointing.CONFIG_JSON)) as f:
+            old = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    return config_changes(old, json.loads(json.dumps(run.config_json))) if isinstance(old, dict) else {}
+
+
+def _in_use_error(workdir: str, holder: str) -> ConfigError:
+    return ConfigError(f"--workdir={workdir} is in use by another trainer ({holder}): two runs in one workdir would "
+                       "overwrite each other's checkpoints and logs; wait for it to end or stop it "
+                       f"(`bridge-train --status {workdir}` shows how far it is)")
+
+
+def _lock_workdir(workdir: str, enabled: bool) -> workdir_mod.WorkdirLock:
+    """The workdir's lock for this run (`workdir.WorkdirLock`: creates the workdir); ConfigError naming the
+    holder's PID when another trainer has it. Process 0 locks for a multi-host run (`enabled`)."""
+    try:
+        return workdir_mod.WorkdirLock(workdir, enabled=enabled)
+    except workdir_mod.WorkdirInUse as e:
+        raise _in_use_error(workdir, e.holder) from None
+
+
+def _refuse_if_locked(workdir: str) -> None:
+    """ConfigError naming the holder's PID when another trainer holds `workdir` (`workdir.lock_holder`; reads
+    only): said before the data and the model are built. The lock itself is taken at the first write."""
+    holder = workdir_mod.lock_holder(workdir)
+    if holder is not None:
+        raise _in_use_error(workdir, holder)
+
+
+def _check_workdir(run: setup.Run, workdir: str, allow_config_change: bool = False) -> bool:
+    """Whether `workdir` holds a run to resume. Refused (ConfigError, nothing is written): a workdir of another
+    model, and a resume with a config that differs from the workdir's config.json in fields outside
+    `RESUME_MAY_CHANGE` unless `allow_config_change`."""
     if os.path.exists(workdir) and not os.path.isdir(workdir):
         raise ConfigError(f"--workdir={workdir} exists and is not a directory")
     if os.path.isfile(os.path.join(workdir, recipe.RECIPE_JSON)):
@@ -166,6 +254,12 @@ def _check_workdir(run: setup.Run, workdir: str) -> bool:
         if prev != json.loads(json.dumps(want)):
             raise ConfigError(f"--workdir={workdir} holds a run of a different model ({prev}); this config builds "
                               f"{want}. Use a new workdir (or the same model config) to resume.")
+    if resuming and not allow_config_change:
+        refused = {k: v for k, v in _config_changes(run, workdir).items() if not _may_change_on_resume(k)}
+        if refused:
+            raise ConfigError(f"--workdir={workdir} was started with another config (its {checkpointing.CONFIG_JSON}"
+                              f"): {describe_changes(refused)}; resume with the same config, train in a new workdir, "
+                              "or pass --allow-config-change to resume with these changes")
     return resuming
 
 
@@ -384,7 +478,7 @@ def describe_validation(step: int, res: dict) -> str:
 
 def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: str, *,
                        enable_cache: bool = False, config_name: Optional[str] = None,
-                       stage: Optional[recipe.StageRun] = None) -> dict:
+                       stage: Optional[recipe.StageRun] = None, allow_config_change: bool = False) -> dict:
     """Trains (or resumes) in `workdir`; returns a summary dict (final step, last metrics, validation, state).
 
     `config`: a training config, or the `setup.Run` parsed from one; a recipe config (`config.stages`) runs
@@ -392,9 +486,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     compilation cache (`compile_cache.enable` with `config.compilation_cache_dir`) once the inputs are checked
     (the command line does; JAX keeps the first cache folder of a process, so a library caller usually does
     not). `config_name`: how the config was named, for the start-up line. `stage`: set by `run_recipe` for one
-    of its stages: metrics, TensorBoard and status.json go to the recipe's workdir, tagged with the stage."""
+    of its stages: metrics, TensorBoard and status.json go to the recipe's workdir, tagged with the stage.
+    `allow_config_change`: resume even when the config differs from the workdir's config.json in fields outside
+    `RESUME_MAY_CHANGE` (the changes are printed and recorded in metrics.jsonl either way).
+
+    The run holds the workdir's lock (`workdir.WorkdirLock`) from its first write to its return: a second
+    trainer on the same workdir is refused (ConfigError naming the holder's PID). A recipe's stage locks its
+    own stage workdir; `run_recipe` holds the recipe's."""
     if recipe.is_recipe(config):
-        return run_recipe(config, workdir, enable_cache=enable_cache, config_name=config_name)
+        return run_recipe(config, workdir, enable_cache=enable_cache, config_name=config_name,
+                          allow_config_change=allow_config_change)
     global _RUNS_STARTED
     # The first run of a process counts its first step from the process's start (imports included); a later run
     # in the same process (bridge-demo's second phase) from its own start.
@@ -405,7 +506,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     proc, nproc = jax.process_index(), jax.process_count()
     is_main = proc == 0
     workdir = os.path.abspath(workdir)
-    resuming = _check_workdir(run, workdir)
+    if is_main:  # process 0 alone locks (the others would find its lock taken)
+        _refuse_if_locked(workdir)
+    resuming = _check_workdir(run, workdir, allow_config_change)
     dataset, dataset_size = _make_dataset(run, proc, nproc)
     steps_per_epoch, num_steps = run.steps(dataset_size)
     val_data = _validation_data(run)
@@ -427,12 +530,24 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                          host_state, state_sharding)
     del host_state, params
 
-    ##### Workdir: config, checkpoints, resume ##############################################################
-    os.makedirs(workdir, exist_ok=True)
-    log_dir = stage.log_dir if stage else workdir  # a recipe's stages log into the recipe's workdir
-    stage_fields = ({"stage": stage.name, "stage_index": stage.index + 1, "num_stages": stage.count}
-                    if stage else {})
-    run_status = RunStatus(log_dir, is_main, step=0, num_steps=num_steps, **stage_fields)
+    ##### Workdir: lock, config, checkpoints, resume ########################################################
+    # The first write: the lock (it creates the workdir). The checks above saw the workdir unlocked; they are
+    # repeated under the lock, since a run that held it meanwhile may have changed what is there.
+    lock = _lock_workdir(workdir, is_main)
+    try:
+        if _check_workdir(run, workdir, allow_config_change) != resuming:
+            raise ConfigError(f"--workdir={workdir} changed while this run was starting (another trainer ran in it "
+                              "meanwhile); run the same command again")
+        changes = _config_changes(run, workdir) if resuming else {}  # read before config.json is rewritten
+        os.makedirs(workdir, exist_ok=True)  # processes > 0 hold no lock file
+        log_dir = stage.log_dir if stage else workdir  # a recipe's stages log into the recipe's workdir
+        stage_fields = ({"stage": stage.name, "stage_index": stage.index + 1, "num_stages": stage.count}
+                        if stage else {})
+        run_status = RunStatus(log_dir, is_main, step=0, num_steps=num_steps, **stage_fields)
+    except BaseException:
+        lock.release()
+        raise
+    ckpt = None
     try:
         if is_main:
             files.write_json(os.path.join(workdir, checkpointing.CONFIG_JSON), run.config_json)
@@ -445,6 +560,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         if is_main:
             print(("" if stage is None else f"{stage.label}: ")
                   + _startup_line(run, config_name, dataset_size, val_data, workdir, start_step, num_steps), flush=True)
+        if is_main and changes and start_step > 0:
+            print(f"resuming with config changes: {describe_changes(changes, limit=len(changes))}", flush=True)
         run_status.update(step=start_step, start_step=start_step, last_checkpoint=ckpt.latest_step())
 
         ##### Update step and validation ###########################################################################
@@ -452,8 +569,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
                                         dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                         mesh=mesh)
-        logger = MetricsLogger(log_dir, is_main, resume_step=start_step if start_step > 0 else None,
+        logger = MetricsLogger(log_dir, is_main, resume_step=start_step,
                                stage={"name": stage.name, "offset": stage.offset} if stage else None)
+        if changes and start_step > 0:  # config.json now holds the new values: the history keeps the old ones
+            logger.record(start_step, "config_change", {"changes": {k: list(v) for k, v in changes.items()}})
         if stage and start_step == 0:
             # what the stage starts from: the init_from path and the sum of squares of the initial params, so the
             # record shows that stage k starts from stage k - 1's final params
@@ -555,12 +674,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
                 "checkpoint": os.path.join(ckpt.directory, str(latest)) if latest is not None else None,
                 "skipped_data": dataset.skips.report(), "state": state}
     except BaseException as e:  # every way out that is not a return: status.json says what happened
+        # the checkpoint that exists now (a failed save, e.g. on a full disk, keeps the one before it)
+        last = {}
+        if ckpt is not None:
+            with contextlib.suppress(Exception):
+                last = {"last_checkpoint": ckpt.latest_step()}
         if isinstance(e, (KeyboardInterrupt, SystemExit)):
-            run_status.end("aborted", reason=f"{type(e).__name__}: exited without saving")
+            run_status.end("aborted", reason=f"{type(e).__name__}: exited without saving", **last)
         else:
             text = str(e).strip()
-            run_status.end("failed", reason=text.splitlines()[0] if text else type(e).__name__)
+            run_status.end("failed", reason=text.splitlines()[0] if text else type(e).__name__, **last)
         raise
+    finally:
+        lock.release()
 
 
 def params_square_sum(params) -> float:
@@ -612,12 +738,17 @@ def _check_recipe_workdir(workdir: str, names: Sequence[str]) -> None:
 
 
 def run_recipe(config: ml_collections.ConfigDict, workdir: str, *, enable_cache: bool = False,
-               config_name: Optional[str] = None) -> dict:
+               config_name: Optional[str] = None, allow_config_change: bool = False) -> dict:
     """Runs the stages of a recipe config (`bridge_jax.recipe`) in order in `workdir`, each in its own
     `stages/<name>/` workdir from the previous stage's final params; a finished stage is skipped, an interrupted
     one resumes at its step. Returns the last stage's `train_and_evaluate` summary with "step" counted across
     the recipe and "stages" ([{"name", "steps", "seconds", "validation"}] of the finished stages), or the
-    interrupted stage's summary with "stage" naming it."""
+    interrupted stage's summary with "stage" naming it.
+
+    The recipe's workdir is locked (`workdir.WorkdirLock`) from its first write until every stage has run, so a
+    second trainer on it is refused; each stage locks its own `stages/<name>/` as well (another file: no
+    deadlock), which keeps a single run started by hand in a stage's folder out too. `allow_config_change`: as
+    in `train_and_evaluate`, for the stage that resumes."""
     workdir = os.path.abspath(workdir)
     runs = _recipe_runs(config, workdir)
     names = list(runs)
@@ -625,6 +756,15 @@ def run_recipe(config: ml_collections.ConfigDict, workdir: str, *, enable_cache:
     first = runs[names[0]]
     if enable_cache:
         compile_cache.enable(first.compilation_cache_dir, workdir, option="config.compilation_cache_dir")
+    with _lock_workdir(workdir, jax.process_index() == 0):  # creates the workdir
+        _check_recipe_workdir(workdir, names)  # again under the lock: a run that held it may have changed it
+        return _run_stages(runs, workdir, config_name, allow_config_change)
+
+
+def _run_stages(runs: dict[str, setup.Run], workdir: str, config_name: Optional[str],
+                allow_config_change: bool) -> dict:
+    """`run_recipe`'s work once the recipe's workdir is locked."""
+    names = list(runs)
     os.makedirs(workdir, exist_ok=True)
     if jax.process_index() == 0:
         recipe.write_record(workdir, names, {name: run.config_json for name, run in runs.items()}, config_name)
@@ -637,7 +777,8 @@ def run_recipe(config: ml_collections.ConfigDict, workdir: str, *, enable_cache:
         else:
             t0 = time.time()
             result = train_and_evaluate(runs[name], recipe.stage_dir(workdir, name), config_name=config_name,
-                                        stage=recipe.StageRun(name, i, len(names), offset, workdir))
+                                        stage=recipe.StageRun(name, i, len(names), offset, workdir),
+                                        allow_config_change=allow_config_change)
             if result["interrupted"]:
                 return dict(result, stage=name, step=offset + result["step"], workdir=workdir, stages=stages)
             done = {"steps": result["step"], "seconds": round(time.time() - t0, 1),
@@ -746,6 +887,11 @@ def build_parser():
                         f"heartbeat for {workdir_mod.STALE_BEATS} heartbeat periods (a heartbeat comes at every log "
                         f"interval and at least every {workdir_mod.HEARTBEAT_S:g} s); exit code 0, 1 when stale or "
                         "failed, 2 without a status file")
+    p.add_argument("--allow-config-change", action="store_true",
+                   help="resume a run even though this config differs from the one the workdir was started with "
+                        "(its config.json) in fields that change what is trained (lr, data, losses, seed, ...); "
+                        "without it such a resume is refused with the fields listed. Training length, log, "
+                        "validation and checkpoint intervals, devices and caches may change without it")
     p.add_argument("--verbosity", default="warning", choices=("debug", "info", "warning", "error"),
                    help="log level of the libraries (absl, orbax, grain); info shows orbax's checkpoint messages")
     cli.add_debug_flag(p)
@@ -807,6 +953,7 @@ def _set_verbosity(level: str) -> None:
     logging.getLogger("bridge_jax").setLevel(num)
 
 
+@cli.entry_point
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """`bridge-train` / `bridge-train`; returns the exit code (see the module docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -840,7 +987,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     console.install(os.path.join(os.path.abspath(args.workdir), XLA_LOG), enabled=not cli.debug_enabled(args))
     try:
         config = load_config(args.config, items)
-        result = train_and_evaluate(config, args.workdir, enable_cache=True, config_name=args.config)
+        result = train_and_evaluate(config, args.workdir, enable_cache=True, config_name=args.config,
+                                    allow_config_change=args.allow_config_change)
     except TrainingDiverged as e:
         return cli.report_error(e, code=EXIT_DIVERGED, debug=args.debug)
     except (ValueError, OSError) as e:  # ConfigError, unreadable data, a full disk, a broken checkpoint: one line

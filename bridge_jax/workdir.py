@@ -7,6 +7,7 @@
       tensorboard/                    tensorboardX event files (scalars, images)
       images/                         the same pictures as PNG files
       status.json                     what the run is doing or how it ended (`RunStatus`, `read_status`)
+      .lock                           held by the trainer working in it (`WorkdirLock`): one trainer per workdir
 
 The trainer writes it (`MetricsLogger`, `RunStatus`); `zoo.build_shipped` and a re-run of a finished run read
 it back (`last_validation`); `bridge-train --status WORKDIR` prints `describe_status`. Nothing here knows how
@@ -21,6 +22,12 @@ seconds spent tracing and compiling, or loading from the compilation cache). A r
 thread, at least every `HEARTBEAT_S` seconds (so a long compilation or validation does not look dead). The
 rule for readers: a "running" status whose heartbeat is older than "stale_after_s" (= `STALE_BEATS`
 heartbeat periods) belongs to a process that is gone (killed, or its machine lost).
+
+One trainer at a time: a trainer holds an exclusive OS lock (`fcntl.flock`) on `<workdir>/.lock` for its whole
+run (`WorkdirLock`), with its PID written in the file; a second trainer on the same workdir finds it taken and
+refuses, naming that PID (`lock_holder`). The kernel drops the lock when its process ends, however it ends (a
+kill -9 included), so a lock never outlives its trainer and never has to be cleaned up by hand. Readers
+(`bridge-train --status`, predict, evaluate) take no lock.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import socket
 import threading
 import time
 from typing import Optional
@@ -37,10 +45,16 @@ from tensorboardX import SummaryWriter
 
 from bridge_jax import files, visualize
 
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; workdirs go unlocked there
+    fcntl = None
+
 METRICS_JSONL = "metrics.jsonl"
 STATUS_JSON = "status.json"
 TENSORBOARD_DIR = "tensorboard"
 IMAGES_DIR = "images"
+LOCK_FILE = ".lock"
 
 
 def scalar(v) -> float:
@@ -51,14 +65,17 @@ def scalar(v) -> float:
 class MetricsLogger:
     """metrics.jsonl + TensorBoard (tensorboardX) on process 0; no-ops elsewhere.
 
-    `resume_step`: the step a resumed run restarts from. Records of later steps (written by the previous run
-    after its last checkpoint, and redone now) are dropped from metrics.jsonl and TensorBoard's events are
-    purged past it, so both read as one run.
+    `resume_step`: the step the run (re)starts from, 0 for a start from scratch; None appends to what is there.
+    Records of later steps (written by the previous run after its last checkpoint, and redone now) are dropped
+    from metrics.jsonl and TensorBoard's events are purged past it, so both read as one run. A start from
+    scratch drops every record of the run, those of step 0 too (a killed attempt that never finished a
+    checkpoint logged steps that this start logs again, its step-0 validation included).
 
     `stage`: {"name", "offset"} of a recipe stage (`bridge_jax.recipe`) logging into the recipe's workdir: every
     record carries "stage" (its name) and "stage_step" (the step the caller passes, inside the stage), and its
     "step" and TensorBoard step are offset by the steps of the stages before it. A stage always truncates to
-    its own restart (`resume_step`, 0 for a fresh start): records a killed attempt of it wrote are dropped."""
+    its own restart (`resume_step`, 0 for a fresh start): records a killed attempt of it wrote are dropped (at
+    the stage's first step, which is the previous stage's last, only its own)."""
 
     def __init__(self, workdir: str, enabled: bool, resume_step: Optional[int] = None,
                  stage: Optional[dict] = None):
@@ -72,10 +89,14 @@ class MetricsLogger:
             resume_step = resume_step or 0
         if enabled:
             path = os.path.join(workdir, METRICS_JSONL)
+            purge_step = None
             if resume_step is not None:
-                truncate_metrics(path, self.offset + resume_step)
-            self.tb = SummaryWriter(os.path.join(workdir, TENSORBOARD_DIR),
-                                    purge_step=None if resume_step is None else self.offset + int(resume_step) + 1)
+                restart = int(resume_step) == 0
+                truncate_metrics(path, self.offset + int(resume_step), restart=restart,
+                                 stage=stage["name"] if stage else None)
+                # TensorBoard purges by step alone: a stage's first step keeps the previous stage's events
+                purge_step = self.offset + int(resume_step) + (0 if restart and not stage else 1)
+            self.tb = SummaryWriter(os.path.join(workdir, TENSORBOARD_DIR), purge_step=purge_step)
             self.jsonl = open(path, "a")
 
     def _head(self, step: int, kind: str) -> dict:
@@ -129,9 +150,13 @@ class MetricsLogger:
             self.jsonl.close()
 
 
-def truncate_metrics(path: str, resume_step: int) -> int:
+def truncate_metrics(path: str, resume_step: int, *, restart: bool = False, stage: Optional[str] = None) -> int:
     """Drops the records of steps after `resume_step` from the metrics.jsonl at `path` (rewritten atomically);
-    returns how many were dropped. A torn last line (a crash mid-write) is dropped too."""
+    returns how many were dropped. A torn last line (a crash mid-write) is dropped too.
+
+    `restart`: the run starts over at `resume_step` (from scratch, no checkpoint), so the records of that step
+    are written again and go too: all of them, or only those of recipe stage `stage` when given (the step a
+    stage starts at is the previous stage's last, whose records stay)."""
     if not os.path.exists(path):
         return 0
     kept, dropped = [], 0
@@ -139,7 +164,9 @@ def truncate_metrics(path: str, resume_step: int) -> int:
         for line in f:
             try:
                 rec = json.loads(line)
-                keep = int(rec.get("step", 0)) <= resume_step
+                step = int(rec.get("step", 0))
+                keep = step < resume_step or (step == resume_step and not (
+                    restart and (stage is None or rec.get("stage") == stage)))
             except (json.JSONDecodeError, TypeError, ValueError, AttributeError):
                 keep = False
             if keep and line.endswith("\n"):
@@ -282,3 +309,105 @@ def describe_status(workdir: str, now: float | None = None) -> tuple[str, bool]:
         line += (f"; STALE: no heartbeat for over {float(st.get('stale_after_s', 0)):.0f} s, the process is gone "
                  "(killed or its machine lost); run the same command to resume")
     return line, stale
+
+
+# ----------------------------------------------------------------------------------------------------------
+# One trainer per workdir
+# ----------------------------------------------------------------------------------------------------------
+
+class WorkdirInUse(ValueError):
+    """Another process holds the workdir's lock; `holder` says which ("PID 1234", "PID 1234 on host")."""
+
+    def __init__(self, workdir: str, holder: str):
+        super().__init__(f"{workdir} is in use by another trainer ({holder})")
+        self.workdir, self.holder = workdir, holder
+
+
+def _describe_holder(text: str) -> str:
+    """Who wrote a lock file's text (its PID, then its host name, one a line): "PID 1234", with " on <host>"
+    when that is another machine."""
+    pid, _, host = text.strip().partition("\n")
+    if not pid.strip().isdigit():  # locked an instant ago: the holder has not written its PID yet
+        return "PID not written yet"
+    host = host.strip()
+    return f"PID {pid.strip()}" + (f" on {host}" if host and host != socket.gethostname() else "")
+
+
+def lock_holder(workdir: str) -> Optional[str]:
+    """Who holds `workdir`'s lock ("PID 1234", "PID 1234 on host"), or None when nobody does. Creates nothing: a
+    workdir without a lock file has no holder. The probe takes a shared lock for an instant; a trainer locking
+    at that very moment retries (`WorkdirLock`)."""
+    if fcntl is None:
+        return None
+    try:
+        fd = os.open(os.path.join(workdir, LOCK_FILE), os.O_RDONLY)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _describe_holder(os.pread(fd, 256, 0).decode("utf-8", "replace"))
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+class WorkdirLock:
+    """An exclusive lock on a workdir for this process: `fcntl.flock` on `<workdir>/.lock`, taken when
+    constructed (the workdir and the lock file are created if missing), this process's PID and host name written
+    into the file, released by `release` (or leaving a `with` block) or by the kernel when the process ends.
+    Raises `WorkdirInUse` naming the holder when another process has it. `enabled=False` (processes > 0 of a
+    multi-host run: process 0 locks for all of them) holds nothing.
+
+    The file stays when released (emptied): removing it would let a process that opened the old file and one
+    that creates a new one both "hold" the lock."""
+
+    RETRY_S = 0.5  # how long a taken lock is retried: a `lock_holder` probe holds it for an instant
+
+    def __init__(self, workdir: str, enabled: bool = True):
+        self.path = os.path.join(workdir, LOCK_FILE)
+        self.fd: Optional[int] = None
+        if not enabled or fcntl is None:
+            return
+        os.makedirs(workdir, exist_ok=True)
+        # no O_TRUNC: the file may hold the PID of a holder that this open must not erase
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        deadline = time.monotonic() + self.RETRY_S
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    continue
+                holder = _describe_holder(os.pread(fd, 256, 0).decode("utf-8", "replace"))
+                os.close(fd)
+                raise WorkdirInUse(workdir, holder) from None
+            except BaseException:
+                os.close(fd)
+                raise
+        self.fd = fd
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n{socket.gethostname()}\n".encode(), 0)
+
+    def release(self) -> None:
+        """Empties the lock file and unlocks it; a no-op when nothing is held (idempotent)."""
+        if self.fd is None:
+            return
+        fd, self.fd = self.fd, None
+        try:
+            os.ftruncate(fd, 0)  # no stale PID for a person reading the file
+        except OSError:
+            pass
+        finally:
+            os.close(fd)  # closing the last descriptor of the open file drops the flock
+
+    def __enter__(self) -> "WorkdirLock":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.release()
+        return False

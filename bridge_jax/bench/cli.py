@@ -277,6 +277,7 @@ def run_all_subprocesses(args, argv) -> list[dict]:
     return records
 
 
+@cli.entry_point
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:

@@ -47,7 +47,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bridge_jax import files
+from bridge_jax import cli, files
 from bridge_jax.data import kitti
 
 cv2.setNumThreads(1)
@@ -854,7 +854,6 @@ def write_kitti_layout(out_dir: str, num: int, seed: int = 0, height: int = 256,
 
 
 def build_parser():
-    from bridge_jax import cli
     parser = cli.make_parser("bridge_jax.data.synthetic", CLI_DOC)
     parser.add_argument("--out", required=True, help="output folder (must be new or empty unless --overwrite)")
     parser.add_argument("--num", type=int, default=20, help="number of samples")
@@ -884,6 +883,7 @@ the same samples.
 """
 
 
+@cli.entry_point
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -892,7 +892,6 @@ def main(argv=None) -> int:
         out = write_kitti_layout(args.out, args.num, args.seed, args.height, args.width, overwrite=args.overwrite,
                                  focal=args.focal, baseline=args.baseline, scene=args.scene)
     except (ValueError, OSError) as e:
-        from bridge_jax import cli
         return cli.report_error(e, debug=args.debug)
     print(f"wrote {args.num} samples to {out}")
     return 0

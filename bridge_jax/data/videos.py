@@ -26,7 +26,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from bridge_jax import files
+from bridge_jax import cli, files
 
 
 class VideoError(ValueError):
@@ -184,7 +184,6 @@ def extract_stereo_video(paths: Sequence[str], out_dir: str, *, side_by_side: bo
 
 
 def build_parser():
-    from bridge_jax import cli
     p = cli.make_parser("bridge_jax.data.videos", __doc__)
     p.add_argument("videos", nargs="+", metavar="VIDEO", help="left.mp4 right.mp4, or one side-by-side video")
     p.add_argument("--out", required=True, help="output folder (the training layout OUT/left, OUT/right)")
@@ -196,8 +195,8 @@ def build_parser():
     return p
 
 
+@cli.entry_point
 def main(argv=None) -> int:
-    from bridge_jax import cli
     args = build_parser().parse_args(argv)
     try:
         desc = extract_stereo_video(args.videos, args.out, side_by_side=args.side_by_side, every=args.every,

@@ -68,6 +68,7 @@ def build_parser():
     return p
 
 
+@cli.entry_point
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
