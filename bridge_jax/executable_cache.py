@@ -33,12 +33,13 @@ from typing import Callable, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax._src import tree_util
 from jax._src.interpreters import pxla
 from jax._src.layout import Layout
 from jax._src.lib import xla_client
 from jax._src.linear_util import DebugInfo
-from jax.sharding import SingleDeviceSharding
+from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
 
 from bridge_jax import compile_cache, files
 from bridge_jax.models import layers
@@ -151,12 +152,53 @@ def _dynamic(args, static_argnums: Sequence[int]) -> tuple:
 # carry more than this format says gives "not kept" (compiled as usual), never a wrong program.
 # ----------------------------------------------------------------------------------------------------------
 
+def _spec_json(spec) -> list:
+    return [list(p) if isinstance(p, tuple) else p for p in spec]
+
+
+def _spec(d: list) -> PartitionSpec:
+    return PartitionSpec(*(tuple(p) if isinstance(p, list) else p for p in d))
+
+
+def _mesh_json(mesh) -> dict:
+    return {"names": list(mesh.axis_names), "sizes": [int(n) for n in mesh.axis_sizes],
+            "types": [t.name for t in mesh.axis_types]}
+
+
+def _mesh(d: dict, device) -> Mesh:
+    """The one-device mesh `d` describes, on `device`."""
+    return Mesh(np.array([device], dtype=object).reshape(d["sizes"]), tuple(d["names"]),
+                axis_types=tuple(AxisType[t] for t in d["types"]))
+
+
+def _sharding_json(sharding) -> dict:
+    if isinstance(sharding, SingleDeviceSharding):
+        return {"memory_kind": sharding.memory_kind}
+    if isinstance(sharding, NamedSharding) and sharding.mesh.devices.size == 1:  # a one-device training mesh
+        return {"memory_kind": sharding.memory_kind, "mesh": _mesh_json(sharding.mesh),
+                "spec": _spec_json(sharding.spec)}
+    raise ValueError(f"a {type(sharding).__name__} this entry format does not describe")
+
+
+def _sharding(d: dict, device):
+    if "mesh" not in d:
+        return SingleDeviceSharding(device, memory_kind=d["memory_kind"])
+    return NamedSharding(_mesh(d["mesh"], device), _spec(d["spec"]), memory_kind=d["memory_kind"])
+
+
 def _aval_json(aval) -> dict:
-    return {"shape": [int(d) for d in aval.shape], "dtype": str(aval.dtype), "weak_type": bool(aval.weak_type)}
+    d = {"shape": [int(n) for n in aval.shape], "dtype": str(aval.dtype), "weak_type": bool(aval.weak_type)}
+    mesh = aval.sharding.mesh
+    if mesh.axis_names:  # a sharding in the type (explicit mesh axes); else the default, not written
+        d.update(mesh=_mesh_json(mesh), spec=_spec_json(aval.sharding.spec))
+    return d
 
 
-def _aval(d: dict):
-    return jax.core.ShapedArray(tuple(d["shape"]), jnp.dtype(d["dtype"]), weak_type=d["weak_type"])
+def _aval(d: dict, device):
+    sharding = {}
+    if "mesh" in d:
+        sharding["sharding"] = NamedSharding(_mesh(d["mesh"], device).abstract_mesh, _spec(d["spec"]))
+    return jax.core.ShapedArray(tuple(d["shape"]), jnp.dtype(d["dtype"]), weak_type=d["weak_type"], **sharding)
 
 
 def _layout_json(layout):
@@ -242,9 +284,6 @@ def _describe(compiled, dyn_args) -> bytes:
     if (getattr(unloaded, "mut", None) is not None or getattr(unloaded, "pgle_profiler", None) is not None
             or compiled._params.const_args or len(unloaded.device_list) != 1):
         raise ValueError("the program carries state this entry format does not describe")
-    for sharding in (*unloaded.input_shardings, *unloaded.output_shardings):
-        if not isinstance(sharding, SingleDeviceSharding):
-            raise ValueError(f"a {type(sharding).__name__} this entry format does not describe")
     args_info_flat, in_tree = jax.tree_util.tree_flatten(compiled.args_info)
     if in_tree != jax.tree.structure((dyn_args, {})):
         raise ValueError("the compiled program's inputs are not its arguments' tree")
@@ -254,8 +293,8 @@ def _describe(compiled, dyn_args) -> bytes:
         "kept_var_idx": sorted(int(i) for i in unloaded.kept_var_idx),
         "input_avals": [_aval_json(a) for a in unloaded.input_avals],
         "output_avals": [_aval_json(a) for a in unloaded.output_avals],
-        "input_memory_kinds": [s.memory_kind for s in unloaded.input_shardings],
-        "output_memory_kinds": [s.memory_kind for s in unloaded.output_shardings],
+        "input_shardings": [_sharding_json(x) for x in unloaded.input_shardings],
+        "output_shardings": [_sharding_json(x) for x in unloaded.output_shardings],
         "xla_in_layouts": [_layout_json(x) for x in unloaded.xla_in_layouts],
         "dispatch_in_layouts": [_layout_json(x) for x in unloaded.dispatch_in_layouts],
         "xla_out_layouts": [_layout_json(x) for x in unloaded.xla_out_layouts],
@@ -287,27 +326,25 @@ def _describe(compiled, dyn_args) -> bytes:
 def _fields(header: dict, in_tree, device):
     """The UnloadedMeshExecutable fields (without the executable), the flat ArgInfo list and the output tree
     that `header` describes for inputs of tree `in_tree` on `device`."""
-    def shardings(kinds):
-        return [SingleDeviceSharding(device, memory_kind=k) for k in kinds]
-
     info = header["all_args_info"]
     all_args_info = None
     if info is not None:
         debug = DebugInfo(info["traced_for"], info["func_src_info"],
                           None if info["arg_names"] is None else tuple(info["arg_names"]),
                           None if info["result_paths"] is None else tuple(info["result_paths"]))
-        all_args_info = pxla.AllArgsInfo([_aval(a) for a in info["in_avals"]], debug)
+        all_args_info = pxla.AllArgsInfo([_aval(a, device) for a in info["in_avals"]], debug)
     fields = dict(
         name=header["name"], committed=header["committed"], kept_var_idx=set(header["kept_var_idx"]),
-        input_avals=[_aval(a) for a in header["input_avals"]], output_avals=[_aval(a) for a in header["output_avals"]],
-        input_shardings=shardings(header["input_memory_kinds"]),
-        output_shardings=shardings(header["output_memory_kinds"]),
+        input_avals=[_aval(a, device) for a in header["input_avals"]],
+        output_avals=[_aval(a, device) for a in header["output_avals"]],
+        input_shardings=[_sharding(x, device) for x in header["input_shardings"]],
+        output_shardings=[_sharding(x, device) for x in header["output_shardings"]],
         xla_in_layouts=[_layout(x) for x in header["xla_in_layouts"]],
         dispatch_in_layouts=[_layout(x) for x in header["dispatch_in_layouts"]],
         xla_out_layouts=[_layout(x) for x in header["xla_out_layouts"]],
         unordered_effects=[], ordered_effects=[], keepalive=[], host_callbacks=[], mut=None, pgle_profiler=None,
         all_args_info=all_args_info)
-    args_info = [jax.stages.ArgInfo(_aval(a), donated) for a, donated in header["args_info"]]
+    args_info = [jax.stages.ArgInfo(_aval(a, device), donated) for a, donated in header["args_info"]]
     out_tree = _tree(header["out_tree"], _node_table(in_tree))
     return fields, args_info, out_tree
 

@@ -60,8 +60,9 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> str:
     except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        if isinstance(e, OSError) and e.filename is None and e.strerror:
-            e.filename = path  # a full disk fails in f.write, whose error names no file
+        if isinstance(e, OSError) and e.strerror and e.filename in (None, tmp):
+            # a full disk fails in f.write, whose error names no file; the rename's error names the temporary file
+            raise OSError(e.errno, e.strerror, path) from e
         raise
     return path
 

@@ -4,6 +4,7 @@ folder for the session.
 This must run before JAX initialises its backends (and before any test starts a subprocess), hence at conftest
 import time.
 """
+import gc
 import os
 import shutil
 import tempfile
@@ -23,6 +24,16 @@ jax.config.update("jax_enable_x64", False)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """After each test module, drop the compiled programs JAX keeps in memory: an xdist worker runs hundreds of
+    tests, and their executables otherwise add up to several GB by the end of the session. A later module that
+    needs one again loads it from the session's persistent compilation cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture

@@ -115,6 +115,7 @@ def _tiny_config(**kw):
     return cfg
 
 
+@pytest.mark.slow
 def test_bf16_train_step_runs_on_cpu():
     """The bf16 compute path (params / optimizer float32) through the bench's builder: finite, params stay f32."""
     cfg = _tiny_config(**{"loss.tasks": "stereo_only"})  # stereo pairs only: the cheapest loss to compile

@@ -31,6 +31,7 @@ def _check_measurement(rec):
     assert (rec["height"], rec["width"]) == (64, 128)
 
 
+@pytest.mark.slow
 def test_dry_run_train_step_and_inference_records(tmp_path):
     recs, stdout = _run(tmp_path, "--only", "train_step_f32,inference_f32")
     assert [r["label"] for r in recs] == ["train_step float32, 2 cycles", "inference float32, 1 pair"]

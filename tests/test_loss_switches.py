@@ -188,6 +188,7 @@ def test_train_step_reads_the_step_for_the_occlusion_switch():
     assert float(m0["loss"]) != pytest.approx(float(m1["loss"]), rel=1e-4)
 
 
+@pytest.mark.slow
 def test_micro_batched_step_reads_the_step_like_the_plain_step():
     from tests.train_helpers import make_step
     cycle, _ = translating_cycle(H, W)

@@ -420,7 +420,8 @@ def test_subpixel_upconv_same_maps():
 
 @pytest.mark.parametrize("cfg", [
     {"name": "resnet_md_tiny"},
-    {"name": "pwcnet", "pyramid": [4, 4, 4, 4, 4, 4], "estimator": [4, 4, 4, 4, 4], "context": [4, 4, 4, 4, 4, 4]},
+    pytest.param({"name": "pwcnet", "pyramid": [4, 4, 4, 4, 4, 4], "estimator": [4, 4, 4, 4, 4],
+                  "context": [4, 4, 4, 4, 4, 4]}, marks=pytest.mark.slow),  # the same head rule, compiled for pwcnet
 ])
 def test_head_init_zeros_starts_at_zero_motion(cfg):
     """head_init="zeros": only the output convs differ from the default draw, and every map is exactly 0

@@ -98,10 +98,13 @@ def test_opencv_failing_to_write_names_the_file(tmp_path):
     writer = predict.Writer(str(tmp_path), raw=(), max_flow=1.0, max_disp=None, focal=None, baseline=None,
                             video_fps=None)
     (tmp_path / "flow").mkdir()
-    (tmp_path / "flow" / "000000.png").mkdir()   # cv2.imwrite onto a folder fails without saying why
+    (tmp_path / "flow" / "000000.png").mkdir()   # a folder in the way of the image
     with pytest.raises(OSError) as info:
         writer.flow(0, np.zeros((8, 8, 2), np.float32))
-    assert info.value.filename == str(tmp_path / "flow" / "000000.png") and info.value.strerror == "cannot write it"
+    # the error names the output, not the temporary file it was written to first
+    assert info.value.filename == str(tmp_path / "flow" / "000000.png") and info.value.filename2 is None
+    assert info.value.strerror == "Is a directory" and ".tmp-" not in str(info.value)
+    assert not [p for p in os.listdir(tmp_path / "flow") if ".tmp-" in p]
 
 
 def test_a_write_error_without_a_reason_says_so_and_whether_the_disk_is_full(tmp_path, monkeypatch):

@@ -169,6 +169,7 @@ def _cycles(n, seed=0):
                                  for i in range(n)]).astype(np.float32) / 255.0)
 
 
+@pytest.mark.slow
 def test_pwc_lite_step_one_trace_per_shape_and_eight_devices_equal_one():
     from bridge_jax import train_step
     from tests.train_helpers import make_step
@@ -186,7 +187,8 @@ def test_pwc_lite_step_one_trace_per_shape_and_eight_devices_equal_one():
     assert float(jnp.abs(state1["params"]["estimator_flow"]["bias"]).max()) > 0  # it trained
 
 
-@pytest.mark.parametrize("same_image, bound", [(False, "<= 0.3"), (True, ">= 0.8")])
+@pytest.mark.parametrize("same_image, bound", [(False, "<= 0.3"),
+                                               pytest.param(True, ">= 0.8", marks=pytest.mark.slow)])
 def test_pwc_lite_overfits_one_cycle_by_matching(same_image, bound):
     """Learning, not timing: 300 steps of the real training step on ONE synthetic cycle bring the left flow to
     <= 0.3x the zero-motion EPE (measured 0.25); with the flow pair's second frame replaced by its first there is

@@ -251,6 +251,7 @@ def test_one_training_step_with_the_switch_on_and_one_trace(_cache):
     assert float(m2["loss/self_supervision"]) != pytest.approx(ss, rel=1e-4)
 
 
+@pytest.mark.slow
 def test_micro_batched_step_equals_the_plain_step_with_the_switch_on(_cache):
     from tests.train_helpers import make_step
     on = losses.LossConfig(self_supervision=0.3, self_supervision_crop=8, scales="finest")

@@ -361,6 +361,7 @@ def _train_steps_logged(workdir):
     return sum(1 for r in _read_jsonl(path) if r.get("kind") == "train")
 
 
+@pytest.mark.slow
 def test_sigterm_saves_checkpoint_and_exits_75(tmp_path):
     wd = str(tmp_path / "wd")
     proc = subprocess.Popen(train_cli(wd, "--config.loop.num_train_steps=10000",
