@@ -106,11 +106,12 @@ def base_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     return base
 
 
-def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
+def flat_keys(tree: dict, prefix: str = "") -> dict[str, Any]:
+    """{dotted key: value} of the leaves of a nested dict."""
     out = {}
     for k, v in tree.items():
         if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
+            out.update(flat_keys(v, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out
@@ -119,7 +120,7 @@ def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
 def stage_settings(config: ml_collections.ConfigDict, name: str) -> dict[str, Any]:
     """{dotted key: value} that stage `name` sets on top of the base."""
     overrides = config.get("stage_overrides", ml_collections.ConfigDict())
-    return _flat(overrides[name].to_dict()) if name in overrides else {}
+    return flat_keys(overrides[name].to_dict()) if name in overrides else {}
 
 
 def stage_config(config: ml_collections.ConfigDict, name: str) -> ml_collections.ConfigDict:

@@ -172,21 +172,11 @@ def _may_change_on_resume(field: str) -> bool:
     return any(field == f or (f.endswith(".*") and field.startswith(f[:-1])) for f in RESUME_MAY_CHANGE)
 
 
-def _flatten(tree: dict, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in tree.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def config_changes(old: dict, new: dict) -> dict[str, tuple[Any, Any]]:
     """{dotted field: (old value, new value)} of the fields whose values differ between two configs as JSON (a
     workdir's config.json and `setup.Run.config_json`), in the order of `new`. A field only one of them has
     (added or moved by another version of the package) is not compared."""
-    before, after = _flatten(old), _flatten(new)
+    before, after = recipe.flat_keys(old), recipe.flat_keys(new)
     return {k: (before[k], v) for k, v in after.items() if k in before and before[k] != v}
 
 
