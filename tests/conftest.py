@@ -4,6 +4,8 @@ folder for the session.
 This must run before JAX initialises its backends (and before any test starts a subprocess), hence at conftest
 import time.
 """
+import ctypes
+import ctypes.util
 import gc
 import os
 import shutil
@@ -22,8 +24,24 @@ import jax  # noqa: E402
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_enable_x64", False)
 
+# The session's folder is JAX's persistent compilation cache in the test processes too, turned on before their
+# first compilation (JAX opens its cache once per process): tests build equal programs through different jitted
+# functions (a fresh step, predictor or loss per test), which the in-memory cache cannot share and the persistent
+# one does, across modules and across the two xdist workers.
+from bridge_jax import compile_cache  # noqa: E402
+
+compile_cache.enable("auto")
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+
+try:
+    _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    _LIBC.malloc_trim  # glibc only
+except (OSError, AttributeError):
+    _LIBC = None
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -34,6 +52,8 @@ def _release_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)  # hand the freed heap back: the worker's peak is its leftovers plus the next module
 
 
 @pytest.fixture

@@ -107,7 +107,9 @@ def random_case(cfg, dtype, h=32, w=64, b=2):
     return maps, cycles, pyramids
 
 
-FAST = ("census_full2", "stereo_only")
+FAST = ("stereo_only",)
+"""The float32 cases of the default suite; the stacking does not depend on the photometric term (census has its
+own numpy checks in test_loss_switches.py), and float64 `full2` below checks the 2-warp chains exactly."""
 
 
 @pytest.mark.parametrize("name", [n if n in FAST else pytest.param(n, marks=pytest.mark.slow) for n in sorted(CONFIGS)])

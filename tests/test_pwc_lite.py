@@ -190,12 +190,12 @@ def test_pwc_lite_step_one_trace_per_shape_and_eight_devices_equal_one():
 @pytest.mark.parametrize("same_image, bound", [(False, "<= 0.3"),
                                                pytest.param(True, ">= 0.8", marks=pytest.mark.slow)])
 def test_pwc_lite_overfits_one_cycle_by_matching(same_image, bound):
-    """Learning, not timing: 300 steps of the real training step on ONE synthetic cycle bring the left flow to
-    <= 0.3x the zero-motion EPE (measured 0.25); with the flow pair's second frame replaced by its first there is
-    nothing to match, and the same run stays near zero motion (measured 1.01): the model matches, it does not
-    guess flow from one image."""
+    """Learning, not timing: 150 steps of the real training step (lr 3e-3) on ONE synthetic cycle bring the left
+    flow to <= 0.3x the zero-motion EPE (measured 0.276; 300 steps at 1e-3 reach 0.25); with the flow pair's second
+    frame replaced by its first there is nothing to match, and the same run stays near zero motion: the model
+    matches, it does not guess flow from one image."""
     from experiments import flow_ceiling  # the diagnostic's own overfit loop (experiments/flow_ceiling.py)
-    *_, (step, ratio, _) = flow_ceiling.overfit_cycle(dict(models.model_config("pwc_lite")), {}, steps=300,
-                                                      same_image=same_image, eval_every=300)
-    assert step == 300
+    *_, (step, ratio, _) = flow_ceiling.overfit_cycle(dict(models.model_config("pwc_lite")), {}, steps=150, lr=3e-3,
+                                                      same_image=same_image, eval_every=150)
+    assert step == 150
     assert (ratio <= 0.3) if not same_image else (ratio >= 0.8), f"flow EPE ratio {ratio:.3f}, expected {bound}"

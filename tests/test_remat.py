@@ -12,10 +12,12 @@ import pytest
 
 from bridge_jax import network, setup
 from bridge_jax.configs import default as default_config
-from tests.train_helpers import plain_loss_and_grads
 
 
 def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128, conv_weight_grad: str = "auto"):
+    """A scalar of every output of the network (a fixed random weighting of the maps at all 4 scales) and its
+    gradient. Both options act inside the network only, so its own gradient is what they could change; the
+    cycle loss on top of it would only multiply the compile time of this test."""
     c = default_config.get_config()
     c.model = default_config.model_section(model)
     c.height, c.width, c.global_batch, c.remat = height, width, 1, remat
@@ -26,8 +28,16 @@ def _loss_and_grads(model: str, remat: str, height: int = 64, width: int = 128, 
                           params)  # zero heads would give zero maps; move every weight off its init
     net = run.model.network(graphdef)
     assert net.remat == remat and net.conv_weight_grad == conv_weight_grad
-    cycles = np.random.default_rng(2).random((1, 4, height, width, 3), dtype=np.float32)
-    (loss, _), grads = plain_loss_and_grads(net, run.loss)(params, cycles)
+    gen = np.random.default_rng(2)
+    pairs = gen.random((8, height, width, 6), dtype=np.float32)  # the 8 pairs of one training cycle
+    weights = [gen.standard_normal((8, height >> s, width >> s, 2)).astype(np.float32) for s in range(4)]
+
+    def scalar(p):
+        maps = net(p, pairs)["frac"]
+        assert [m.shape for m in maps] == [w.shape for w in weights]
+        return sum(jax.numpy.sum(m * w) for m, w in zip(maps, weights))
+
+    loss, grads = jax.jit(jax.value_and_grad(scalar))(params)
     return float(loss), grads
 
 
