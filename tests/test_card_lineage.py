@@ -18,9 +18,10 @@ FALLBACK = (None, 0, "none", "none")
 
 
 def _defaults(spec):
-    size = zoo.default_working_size(spec)
-    return (size if size is None or isinstance(size, str) else f"{size[0]}x{size[1]}", zoo.default_refine(spec),
-            zoo.default_symmetry(spec), zoo.default_polish(spec))
+    size = zoo.card_working_size(spec)
+    chosen = zoo.card_test_time(spec)
+    return (size if size is None or isinstance(size, str) else f"{size[0]}x{size[1]}", chosen.refine,
+            chosen.symmetry, chosen.polish)
 
 
 def _workdir(path, init_from, step=None):

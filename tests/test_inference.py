@@ -24,7 +24,7 @@ class ConstantPredictor(inference.Predictor):
     """Network replaced by a known working-resolution map, to test the resizing / unit conventions alone."""
 
     def __init__(self, field):
-        self.height, self.width = field.shape[:2]
+        self.size = inference.WorkingSize(*field.shape[:2])
         self.field = field
         self.separate = False
         self.seen = []

@@ -107,7 +107,7 @@ def test_predictor_refine_matches_a_numpy_pass_over_its_own_calls(network, rng):
     n = refined.trace_count
     refined.run_network(pairs)
     assert refined.trace_count == n == 1
-    refined.refine = 2  # another pass count: one more compile
+    refined.test_time = inference.TestTime(refine=2)  # another pass count: one more compile
     refined.run_network(pairs)
     assert refined.trace_count == 2
 

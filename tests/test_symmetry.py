@@ -1,4 +1,4 @@
-"""Test-time symmetry averaging (`inference.symmetric_estimate`, `Predictor(symmetry=)`, `--symmetry`): the map
+"""Test-time symmetry averaging (`inference.symmetric_maps`, `Predictor(symmetry=)`, `--symmetry`): the map
 transforms on hand-built cases (an exact translation matcher, a constant stand-in network), and the predictor
 and the exported artifact against numpy averages over their own plain calls on flipped copies."""
 
@@ -29,7 +29,7 @@ def test_an_exact_matcher_stays_exact_under_every_copy(rng, symmetry):
     off it (u to 1.5 with one wrong sign among four copies)."""
     pairs = _shifted_pair(rng, 3, -2)
     for keep_vertical in (None, jnp.ones(1), jnp.zeros(1)):
-        out = np.asarray(inference.symmetric_estimate(shift_matcher(), pairs, symmetry, keep_vertical))
+        out = np.asarray(inference.symmetric_maps(shift_matcher(), pairs, symmetry, keep_vertical))
         np.testing.assert_allclose(out, np.broadcast_to([3.0, -2.0], (1, H, W, 2)), atol=1e-6)
 
 
@@ -42,7 +42,7 @@ def test_copies_are_mapped_back_and_stereo_rows_keep_stereo_copies():
     pairs = jnp.zeros((2, H, W, 6))
     keep_vertical = jnp.asarray([1.0, 0.0])  # row 0 flow, row 1 stereo
     for symmetry in ("flips", "dihedral"):
-        out = np.asarray(inference.symmetric_estimate(estimate, pairs, symmetry, keep_vertical))
+        out = np.asarray(inference.symmetric_maps(estimate, pairs, symmetry, keep_vertical))
         np.testing.assert_allclose(out[0], np.zeros((H, W, 2)), atol=1e-6)
         np.testing.assert_allclose(out[1], np.broadcast_to([1.0, 0.0], (H, W, 2)), atol=1e-6)
 
@@ -116,13 +116,13 @@ def test_default_symmetry_comes_from_a_shipped_card_only(tmp_path):
     checkpoint path (no card) runs without."""
     for name in ("long", "demo"):
         want = zoo.info(name).get("default_symmetry", "none")
-        assert zoo.default_symmetry(name) == want
+        assert zoo.card_test_time(name).symmetry == want
         assert inference.load_predictor(name).symmetry == want
     assert inference.load_predictor("long", symmetry="none").symmetry == "none"
-    assert zoo.default_symmetry("long") == "flips"  # what its real-image checks chose (real_images.md)
+    assert zoo.card_test_time("long").symmetry == "flips"  # what its real-image checks chose (real_images.md)
     assert any(line.startswith("  default symmetry averaging: flips") for line in zoo.card_lines("long"))
     assert not any("symmetry" in line for line in zoo.card_lines("demo"))
-    assert zoo.default_symmetry(str(tmp_path)) == "none" and zoo.default_symmetry("no-such-name") == "none"
+    assert zoo.card_test_time(str(tmp_path)) == zoo.card_test_time("no-such-name") == inference.TestTime()
 
 
 def predict_pair_command(checkpoint: str, tmp_path):

@@ -180,7 +180,8 @@ def measure_inference(config, args) -> dict:
     graphdef, params = _init_params(run)
     if run.model.separate:
         params = params["stereo"]
-    predictor = inference.Predictor(graphdef, params, height=run.height, width=run.width, dtype=run.model.dtype,
+    predictor = inference.Predictor(graphdef, params, size=inference.WorkingSize(run.height, run.width),
+                                    dtype=run.model.dtype,
                                     model_cfg=run.model.config)
     pairs = int(args.pairs)
     x = jax.device_put(np.random.default_rng(0).random((pairs, run.height, run.width, 6), dtype=np.float32))
