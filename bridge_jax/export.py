@@ -43,17 +43,17 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
     inference.check_task(task, "--task")
     params = jax.tree.map(jnp.asarray, predictor.params)
     rows = predictor.net.static_rows((task == "stereo",) * batch)
-    keep_vertical = jnp.asarray(stages.keep_vertical([task] * batch))
+    flow_rows = jnp.asarray(stages.flow_rows([task] * batch))
     test_time = predictor.test_time
 
     def infer(pairs):
         if test_time == testtime.TestTime():
             maps = predictor.net(params, pairs, rows)
             return maps["px"][0], maps["frac"][0]
-        network_program = lambda x: stages.network_maps(predictor.net, params, x, rows, keep_vertical,
+        network_program = lambda x: stages.network_maps(predictor.net, params, x, rows, flow_rows,
                                                         test_time.network_part)
-        polish_program = lambda x, maps, keep: stages.polish_stage(x, maps, keep, test_time, predictor.polish_config)
-        px = stages.predicted_maps(pairs, keep_vertical, test_time, network_program, polish_program)
+        polish_program = lambda x, maps, flows: stages.polish_stage(x, maps, flows, test_time, predictor.polish_config)
+        px = stages.predicted_maps(pairs, flow_rows, test_time, network_program, polish_program)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)

@@ -28,7 +28,7 @@ from bridge_jax.resizing import (DEFAULT_HEIGHT, DEFAULT_WIDTH, DEFAULT_WORKING_
                                  disparity_to_input_resolution, flow_to_input_resolution, input_size,
                                  map_to_input_resolution, minimum_input_size, native_working_size, resize_images,
                                  resize_weights_align_corners, resize_weights_antialias, to_rgb_float)
-from bridge_jax.stages import keep_vertical, network_maps, predicted_maps, refine_maps, symmetric_maps
+from bridge_jax.stages import flow_rows, network_maps, predicted_maps, refine_maps, symmetric_maps
 from bridge_jax.testtime import MAX_REFINE, POLISH_MODES, SYMMETRY_MODES, TestTime
 
 __all__ = ["Predictor", "load_predictor", "TestTime", "WorkingSize", "PolishConfig", "resolve_working_size",
@@ -36,6 +36,6 @@ __all__ = ["Predictor", "load_predictor", "TestTime", "WorkingSize", "PolishConf
            "resize_images", "COMPILE_MODES", "FAST_COMPILE_PAIRS", "compile_mode_for", "flow_to_input_resolution",
            "disparity_to_input_resolution", "map_to_input_resolution", "TASKS", "check_task", "input_size",
            "minimum_input_size", "MAX_UPSAMPLING", "SYMMETRY_MODES", "POLISH_MODES", "MAX_REFINE",
-           "symmetric_maps", "refine_maps", "network_maps", "predicted_maps", "keep_vertical", "DEFAULT_HEIGHT",
+           "symmetric_maps", "refine_maps", "network_maps", "predicted_maps", "flow_rows", "DEFAULT_HEIGHT",
            "DEFAULT_WIDTH", "DEFAULT_WORKING_SIZE", "NATIVE_MAX_PIXELS", "REDUCED_READ_NOTICE",
            "resize_weights_align_corners", "resize_weights_antialias"]

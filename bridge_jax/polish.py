@@ -92,10 +92,10 @@ class PolishConfig:
 
 DEFAULT_CONFIG = PolishConfig()
 
-def component_mask(keep_vertical: jax.Array) -> jax.Array:
+def component_mask(flow_rows: jax.Array) -> jax.Array:
     """`(N, 1, 1, 2)` 1 for the map components a row keeps: (1, 1) for flow rows, (1, 0) for rectified stereo rows
-    (`keep_vertical (N,)`: 1.0 flow, 0.0 stereo), to multiply `(N, H, W, 2)` maps by."""
-    return jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
+    (`flow_rows (N,)`: 1.0 flow, 0.0 stereo), to multiply `(N, H, W, 2)` maps by."""
+    return jnp.stack([jnp.ones_like(flow_rows), flow_rows], -1)[:, None, None, :]
 
 
 # ------------------------------------------------------------------------------------------ filters
@@ -223,7 +223,7 @@ def edge_weights(grey_a: jax.Array, scale: float = DEFAULT_CONFIG.edge_scale) ->
 
 
 def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, maps: jax.Array,
-                    keep_vertical: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
+                    flow_rows: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """`maps` fitted to the images by a combined local-global energy (Bruhn, Weickert and Schnorr's CLG).
 
     Minimises over the map D, linearised about the current D0 (D = D0 + d),
@@ -249,15 +249,15 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
       grey_a: `(N, H, W)` grey image `a` in [0, 1] (for the edge weights).
       grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
       maps: `(N, H, W, 2)` pixel maps a -> b.
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (vertical component stays 0).
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (vertical component stays 0).
     Returns:
       `(N, H, W, 2)` maps.
     """
     alpha, omega, smooth_eps, data_eps = (config.smoothness_weight, config.sor_omega, config.smooth_eps,
                                           config.data_eps)
     h, w = norm_a.shape[1:]
-    flow_row = (keep_vertical > 0.5)[:, None, None]
-    mask = component_mask(keep_vertical)
+    flow_row = (flow_rows > 0.5)[:, None, None]
+    mask = component_mask(flow_rows)
     ax, ay = gradients(norm_a)
     edges = edge_weights(grey_a, config.edge_scale)
     red = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 == 0)[None, ..., None]
@@ -273,7 +273,8 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
         px, py = xs + d0[..., 0], ys + d0[..., 1]
         inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
         rho = jnp.where(inside, 1.0 / jnp.sqrt(it * it + data_eps ** 2), 0.0)
-        jxx, jxy, jyy = win(rho * gx * gx) + config.data_prior, win(rho * gx * gy), win(rho * gy * gy) + config.data_prior
+        prior = config.data_prior
+        jxx, jxy, jyy = win(rho * gx * gx) + prior, win(rho * gx * gy), win(rho * gy * gy) + prior
         jx, jy = win(rho * gx * it), win(rho * gy * it)
         coupling = [alpha * c * smooth_eps / jnp.sqrt(jnp.sum((_neighbour(d0, dy, dx) - d0) ** 2, -1) + smooth_eps ** 2)
                     for c, (dy, dx) in zip(edges, _NEIGHBOURS)]
@@ -304,7 +305,7 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     return jax.lax.fori_loop(0, config.variational_warps, warp_iteration, maps * mask)
 
 
-def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array,
+def polish_maps(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
                 config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """The "photometric" polish: `config.rounds` rounds of `select_candidates`, then `variational_fit`
     (the second round's candidates come from a map the first round made right on wider areas).
@@ -312,18 +313,18 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array,
     Args:
       pairs: `(N, H, W, 6)` = [image a, image b], RGB in [0, 1] at the working size.
       maps: `(N, H, W, 2)` working-pixel maps a -> b (the network's, refined and averaged as asked).
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (their vertical component stays 0).
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (their vertical component stays 0).
       config: the parameters (hashable: a static argument where jitted).
     Returns:
       `(N, H, W, 2)` polished maps.
     """
     pairs, maps = pairs.astype(jnp.float32), maps.astype(jnp.float32)
-    keep_vertical = keep_vertical.astype(jnp.float32)
+    flow_rows = flow_rows.astype(jnp.float32)
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
     norm_a = normalise_locally(grey_a, config.normalise_radius, config.contrast_floor)
-    mask = component_mask(keep_vertical)
+    mask = component_mask(flow_rows)
     maps = maps * mask
     for _ in range(config.rounds):
         maps = select_candidates(norm_a, grey_b, maps, mask, config)
-        maps = variational_fit(norm_a, grey_a, grey_b, maps, keep_vertical, config)
+        maps = variational_fit(norm_a, grey_a, grey_b, maps, flow_rows, config)
     return maps

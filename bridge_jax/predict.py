@@ -59,7 +59,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, compile_cache, console, files, flowio, inference, metrics, resizing, testtime, visualize, zoo
+from bridge_jax import (cli, compile_cache, console, files, flowio, inference, metrics, resizing, testtime, visualize,
+                        zoo)
 from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -754,7 +755,8 @@ def settings_line(checkpoint: str, predictor, given: Sequence[str] = ()) -> str:
     """The one line saying which test-time settings `predictor` (loaded from `checkpoint`) runs with and why:
     the card of the shipped model the checkpoint is or was fine-tuned from (`zoo.card_lineage`), or the plain
     defaults; settings of `given` (those of `SETTINGS_OPTIONS` the user gave) are marked as given."""
-    values = zip(SETTINGS_OPTIONS, (f"{name.replace('_', ' ')} {value}" for name, value in predictor.settings().items()))
+    settings = predictor.settings()  # working_size, then the test-time fields, in SETTINGS_OPTIONS' order
+    values = zip(SETTINGS_OPTIONS, (f"{name.replace('_', ' ')} {value}" for name, value in settings.items()))
     parts = [f"{text} ({option})" if option in given else text for option, text in values]
     chain = zoo.card_lineage(checkpoint)
     if len(chain) == 1:

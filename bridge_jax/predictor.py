@@ -143,9 +143,9 @@ class Predictor:
                                                          compiler_options=options, **shardings)
         return fn
 
-    def _network_maps(self, params, pairs, rows, keep_vertical, test_time):
+    def _network_maps(self, params, pairs, rows, flow_rows, test_time):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return stages.network_maps(self.net, params, pairs, rows, keep_vertical, test_time)
+        return stages.network_maps(self.net, params, pairs, rows, flow_rows, test_time)
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
@@ -153,13 +153,14 @@ class Predictor:
         other.params = params  # the shallow copy shares `_jits`: the compiled functions do not depend on the values
         return other
 
-    def forward(self, pairs: jax.Array, is_stereo: Sequence[bool]) -> jax.Array:
+    def forward(self, pairs: jax.Array, tasks: Sequence[str]) -> jax.Array:
         """The compiled stages on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps (N a
-        multiple of the mesh size); `is_stereo` one bool per row (True: the row's task is "stereo")."""
-        keep = stages.keep_vertical(["stereo" if s else "flow" for s in is_stereo])
-        args = (self.params, pairs, self.net.static_rows(is_stereo), keep, self.test_time.network_part)
+        multiple of the mesh size); `tasks` the task of each row ("flow" / "stereo")."""
+        flows = stages.flow_rows(tasks)
+        rows = self.net.static_rows([check_task(t) == "stereo" for t in tasks])
+        args = (self.params, pairs, rows, flows, self.test_time.network_part)
         polish_program = self._polish_program if stages.POLISH_APART else None
-        return stages.predicted_maps(pairs, keep, self.test_time, lambda x: self._network_program(args)(*args),
+        return stages.predicted_maps(pairs, flows, self.test_time, lambda x: self._network_program(args)(*args),
                                      polish_program)
 
     def _kept_program(self, key: tuple, jitted: Callable, args: tuple, config: dict, static_argnums: tuple) -> Callable:
@@ -187,29 +188,29 @@ class Predictor:
         key = ("network", self.compile_mode, tuple(pairs.shape), str(pairs.dtype), rows, test_time)
         return self._kept_program(key, self._net, args, config, _NETWORK_STATIC)
 
-    def _polish_program(self, pairs: jax.Array, maps: jax.Array, keep_vertical: np.ndarray) -> jax.Array:
+    def _polish_program(self, pairs: jax.Array, maps: jax.Array, flow_rows: np.ndarray) -> jax.Array:
         """The polish program (stage 3) run on `maps`: compiled at full optimisation whatever `compile_mode`
         (`stages.POLISH_APART`), kept per shape, test-time record and `PolishConfig` (`_kept_program`)."""
-        args = (pairs, maps, keep_vertical, self.test_time, self.polish_config)
+        args = (pairs, maps, flow_rows, self.test_time, self.polish_config)
         key = ("polish", tuple(pairs.shape), str(pairs.dtype), self.test_time, self.polish_config)
         return self._kept_program(key, _POLISH_JIT, args, {"program": "polish"}, _POLISH_STATIC)(*args)
 
-    def lower(self, batch: int, is_stereo: bool = False):
-        """`jax.stages.Lowered` of the network program for `batch` pairs (compile time, cost and memory analysis),
-        with its refinement passes and symmetry averaging and without the polish (a program of its own)."""
+    def lower(self, batch: int, task: str = "flow"):
+        """`jax.stages.Lowered` of the network program for `batch` pairs of `task` (compile time, cost and memory
+        analysis), with its refinement passes and symmetry averaging and without the polish (its own program)."""
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
-        rows = (is_stereo,) * batch
-        keep = stages.keep_vertical(["stereo" if is_stereo else "flow"] * batch)
-        return self._net.lower(self.params, spec, self.net.static_rows(rows), keep, self.test_time.network_part)
+        rows = self.net.static_rows([check_task(task) == "stereo"] * batch)
+        return self._net.lower(self.params, spec, rows, stages.flow_rows([task] * batch),
+                               self.test_time.network_part)
 
-    def run_network(self, pairs: np.ndarray, is_stereo: bool | Sequence[bool] = False) -> np.ndarray:
+    def run_network(self, pairs: np.ndarray, tasks: str | Sequence[str] = "flow") -> np.ndarray:
         """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.
 
-        `is_stereo`: one bool for all rows or one per row (True: a "stereo" row).
+        `tasks`: one task ("flow" / "stereo") for all rows, or one per row.
         """
         pairs = np.asarray(pairs, np.float32)
         n = pairs.shape[0]
-        rows = (bool(is_stereo),) * n if isinstance(is_stereo, (bool, np.bool_)) else tuple(map(bool, is_stereo))
+        rows = (tasks,) * n if isinstance(tasks, str) else tuple(tasks)
         if self.mesh is None:
             x = jax.device_put(pairs)  # not jnp.asarray: that compiles a small program per new shape
         else:
@@ -255,9 +256,9 @@ class Predictor:
         sizes agree). Separate networks get one call per task.
         """
         out: list[Optional[np.ndarray]] = [None] * len(jobs)
-        stereo = [check_task(task) == "stereo" for task, _, _ in jobs]
-        # one shared network: no need to split (and pad) by task; the rows still say which are stereo (refining)
-        groups = stereo if self.separate else [False] * len(jobs)
+        tasks = [check_task(task) for task, _, _ in jobs]
+        # one shared network: no need to split (and pad) by task; the rows still say their task (the stages' rule)
+        groups = tasks if self.separate else ["flow"] * len(jobs)
         sizes = [self.working_size(*input_size(a)) for _, a, _ in jobs]
         for kind in dict.fromkeys(zip(groups, sizes)):
             idx = [i for i, key in enumerate(zip(groups, sizes)) if key == kind]
@@ -265,7 +266,7 @@ class Predictor:
             for start in range(0, len(idx), size):
                 chunk = idx[start:start + size]
                 pairs = np.concatenate([self.prepare([jobs[i][1]], [jobs[i][2]])[0] for i in chunk])
-                rows = [stereo[i] for i in chunk]
+                rows = [tasks[i] for i in chunk]
                 if len(chunk) < size:
                     pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
                     rows += rows[-1:] * (size - len(chunk))
@@ -285,7 +286,7 @@ class Predictor:
         resolution, by the task's rule (`map_to_input_resolution`): flow `(N, h, w, 2)` float32 pixels for
         "flow" pairs, disparity `(N, h, w)` float32 pixels for "stereo" pairs (as `predict` gives them)."""
         pairs, (h, w) = self.prepare(images_a, images_b)
-        maps = self.run_network(pairs, check_task(task) == "stereo")
+        maps = self.run_network(pairs, check_task(task))
         if task == "flow":
             return flow_to_input_resolution(maps, h, w)
         return np.stack([map_to_input_resolution(task, m, h, w) for m in maps])
@@ -314,9 +315,9 @@ class Predictor:
 
 
 _NETWORK_STATIC = (2, 4)
-"""Static positions of the network program's (params, pairs, rows, keep_vertical, test_time)."""
+"""Static positions of the network program's (params, pairs, rows, flow_rows, test_time)."""
 _POLISH_STATIC = (3, 4)
-"""Static positions of the polish program's (pairs, maps, keep_vertical, test_time, config)."""
+"""Static positions of the polish program's (pairs, maps, flow_rows, test_time, config)."""
 _POLISH_JIT = jax.jit(stages.polish_stage, static_argnums=_POLISH_STATIC)
 """The polish as a program of its own (`Predictor._polish_program`)."""
 

@@ -13,9 +13,9 @@ Stages 1-2 are the network program (`network_maps`), stage 3 the polish program 
 `predicted_maps` composes the two. `Predictor` compiles them as two programs (`POLISH_APART`), `export` traces
 both into one artifact; both call `predicted_maps`.
 
-The map for (a, b) says where pixel (x, y) of `a` is found in `b`: at (x + u, y + v). `keep_vertical (N,)` is
-the task of each row as the stages use it: 1.0 for a flow row, 0.0 for a rectified stereo row (whose vertical
-component is dropped: a stereo match lies on the same row).
+The map for (a, b) says where pixel (x, y) of `a` is found in `b`: at (x + u, y + v). `flow_rows (N,)` is
+the task of each row as the stages use it (`flow_rows(tasks)`): 1.0 for a flow row, 0.0 for a rectified stereo
+row (whose vertical component is dropped: a stereo match lies on the same row).
 """
 from __future__ import annotations
 
@@ -37,12 +37,13 @@ mode: the polish is all elementwise loops, which XLA:CPU's optimisation level 0 
 while the network's convolutions (library calls) do not care. `export` fuses both into one artifact."""
 
 
-def keep_vertical(tasks: Sequence[str]) -> np.ndarray:
+def flow_rows(tasks: Sequence[str]) -> np.ndarray:
     """`(N,)` float32 of N tasks ("flow" / "stereo"): 1 for flow rows, 0 for stereo rows."""
     return np.array([0.0 if t == "stereo" else 1.0 for t in tasks], np.float32)
 
 
-def refine_maps(network_maps: Callable, pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array, passes: int) -> jax.Array:
+def refine_maps(network_maps: Callable, pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
+                passes: int) -> jax.Array:
     """Test-time iterative residual refinement of correspondence maps.
 
     Each pass backward-warps image b by the current map D (`geometry.warp`, bilinear, border clamp), so that
@@ -54,14 +55,14 @@ def refine_maps(network_maps: Callable, pairs: jax.Array, maps: jax.Array, keep_
       network_maps: pair inputs `(N, H, W, 6)` -> maps `(N, H, W, 2)` in working pixels (the network).
       pairs: `(N, H, W, 6)` = [image a, image b].
       maps: `(N, H, W, 2)`, the maps so far (the first network call's).
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows, whose vertical component is
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows, whose vertical component is
         dropped before each warp (a stereo match lies on the same row).
       passes: how many passes (static); one compiled copy of the network serves them all (`lax.fori_loop`).
     Returns:
       `(N, H, W, 2)` refined maps.
     """
     image_a, image_b = pairs[..., :3], pairs[..., 3:]
-    mask = component_mask(keep_vertical)
+    mask = component_mask(flow_rows)
 
     def one_pass(_, d):
         d = d * mask
@@ -83,7 +84,7 @@ def _flip(x: jax.Array, left_right: bool, up_down: bool) -> jax.Array:
 
 
 def symmetric_maps(network_maps: Callable, pairs: jax.Array, symmetry: str,
-                       keep_vertical: Optional[jax.Array] = None) -> jax.Array:
+                       flow_rows: Optional[jax.Array] = None) -> jax.Array:
     """The network's map averaged over mirrored and transposed copies of each pair (test-time augmentation).
 
     A correspondence map commutes with the image's symmetries: if both images are flipped left-right, pixel
@@ -101,7 +102,7 @@ def symmetric_maps(network_maps: Callable, pairs: jax.Array, symmetry: str,
         input multiple both ways).
       pairs: `(N, H, W, 6)` = [image a, image b].
       symmetry: one of `testtime.SYMMETRY_MODES`.
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (as for `refine_maps`). A stereo
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (as for `refine_maps`). A stereo
         row counts only its copies that are stereo pairs of the same kind: as given and flipped upside-down (a
         left-right flip turns a left -> right pair into one whose matches lie to the right, a transposition
         into a vertical one). None = all rows are flow.
@@ -113,7 +114,7 @@ def symmetric_maps(network_maps: Callable, pairs: jax.Array, symmetry: str,
     n = pairs.shape[0]
     flips = ((False, False), (True, False), (False, True), (True, True))
     views = (False, True) if symmetry == "dihedral" else (False,)
-    flow_rows = jnp.ones((n,), jnp.float32) if keep_vertical is None else keep_vertical.astype(jnp.float32)
+    flow_rows = jnp.ones((n,), jnp.float32) if flow_rows is None else flow_rows.astype(jnp.float32)
     total = jnp.zeros(pairs.shape[:3] + (2,), jnp.float32)
     count = jnp.zeros((n,), jnp.float32)
     for transposed in views:
@@ -127,7 +128,7 @@ def symmetric_maps(network_maps: Callable, pairs: jax.Array, symmetry: str,
     return total / count[:, None, None, None]
 
 
-def network_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], keep_vertical: jax.Array,
+def network_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], flow_rows: jax.Array,
                  test_time: TestTime) -> jax.Array:
     """Stages 1-2: the network's scale-0 pixel map of `pairs (N, H, W, 6)`, averaged over the `symmetry` copies
     (`symmetric_maps`), then `refine` passes (`refine_maps`). `network(params, x, rows)`: a `Network` and its
@@ -135,31 +136,31 @@ def network_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, .
     n = pairs.shape[0]
     # symmetric_maps stacks copies of the N pairs on the batch axis: separate networks need their rows repeated
     net = lambda x: network(params, x, rows * (x.shape[0] // n))["px"][0]
-    averaged = lambda x: symmetric_maps(net, x, test_time.symmetry, keep_vertical)
+    averaged = lambda x: symmetric_maps(net, x, test_time.symmetry, flow_rows)
     maps = averaged(pairs)
     if test_time.refine:
-        maps = refine_maps(averaged, pairs, maps, keep_vertical, test_time.refine)
+        maps = refine_maps(averaged, pairs, maps, flow_rows, test_time.refine)
     return maps
 
 
-def polish_stage(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array, test_time: TestTime,
+def polish_stage(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array, test_time: TestTime,
                  config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """Stage 3: `maps` polished as `test_time.polish` says ("photometric": `polish.polish_maps` with `config`)."""
-    return polish_maps(pairs, maps, keep_vertical, config) if test_time.polish == "photometric" else maps
+    return polish_maps(pairs, maps, flow_rows, config) if test_time.polish == "photometric" else maps
 
 
-def predicted_maps(pairs, keep_vertical, test_time: TestTime, network_program: Callable,
+def predicted_maps(pairs, flow_rows, test_time: TestTime, network_program: Callable,
                    polish_program: Optional[Callable] = None):
     """What a predictor answers for `pairs`: `network_program(pairs)` (stages 1-2, `network_maps`), then, when
-    `test_time` asks for a polish, `polish_program(pairs, maps, keep_vertical)` (stage 3, `polish_stage`;
+    `test_time` asks for a polish, `polish_program(pairs, maps, flow_rows)` (stage 3, `polish_stage`;
     default: traced into the caller's program). Both may be traced functions or compiled programs."""
     maps = network_program(pairs)
     if test_time.polish == "none":
         return maps
     if polish_program is None:
-        return polish_stage(pairs, maps, keep_vertical, test_time)
-    return polish_program(pairs, maps, keep_vertical)
+        return polish_stage(pairs, maps, flow_rows, test_time)
+    return polish_program(pairs, maps, flow_rows)
 
 
-__all__ = ["refine_maps", "symmetric_maps", "network_maps", "polish_stage", "predicted_maps", "keep_vertical",
+__all__ = ["refine_maps", "symmetric_maps", "network_maps", "polish_stage", "predicted_maps", "flow_rows",
            "POLISH_APART"]

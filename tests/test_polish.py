@@ -71,18 +71,18 @@ def test_polish_recovers_a_sub_pixel_translation(stereo):
     swapped component or a missing step would show at once."""
     u, v = (-1.4, 0.0) if stereo else (0.6, -0.3)
     pairs = jnp.asarray(_translated_pair(u, v))
-    keep_vertical = jnp.asarray([0.0 if stereo else 1.0])
-    out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), keep_vertical))[0]
+    flow_rows = jnp.asarray([0.0 if stereo else 1.0])
+    out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), flow_rows))[0]
     err = np.abs(out[10:-10, 10:-10] - np.float32([u, v]))
     assert err.mean() < (0.01 if stereo else 0.04) and err.max() < (0.05 if stereo else 0.15), (err.mean(), err.max())
     if stereo:
         assert np.all(out[..., 1] == 0.0)
 
 
-def _refine(pairs, maps, keep_vertical=(1.0,)):
+def _refine(pairs, maps, flow_rows=(1.0,)):
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
     return np.asarray(polish.variational_fit(polish.normalise_locally(grey_a), grey_a, grey_b,
-                                             jnp.asarray(maps), jnp.asarray(keep_vertical)))[0]
+                                             jnp.asarray(maps), jnp.asarray(flow_rows)))[0]
 
 
 def test_matches_near_and_beyond_the_border_of_b():
@@ -197,7 +197,7 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     pairs = rng.uniform(size=(2, 64, 128, 6)).astype(np.float32)
     plain = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1)
     polished = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric")
-    rows = [False, True]
+    rows = ["flow", "stereo"]
     want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
     got = polished.run_network(pairs, rows)
     # 200 SOR sweeps with robust weights on random images carry float reassociation between the fused and the

@@ -191,8 +191,8 @@ def measure_inference(config, args) -> dict:
     flops = cost_flops(compiled.cost_analysis())
     mem = compiled.memory_analysis()
     del compiled
-    rows = (False,) * pairs
-    timing = time_calls(lambda i: predictor.forward(x, rows), repeats=args.repeats, warmup=args.warmup)
+    tasks = ("flow",) * pairs
+    timing = time_calls(lambda i: predictor.forward(x, tasks), repeats=args.repeats, warmup=args.warmup)
     rec = dict(what="inference", variant=f"batch={pairs}", model=run.model.config["name"], pairs_per_call=pairs,
                compile_s=round(compile_s, 3), flops=flops, flops_executed=flops,
                flops_source="compiled forward cost_analysis",
