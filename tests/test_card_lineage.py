@@ -1,5 +1,6 @@
 """A model fine-tuned from a shipped one keeps that model's recommended test-time settings (`zoo.card_lineage`,
-`zoo.defaults_source`, `zoo.card_working_size`, `zoo.card_test_time`), and `bridge-predict` says which settings it uses and why."""
+`zoo.defaults_source`, `zoo.card_working_size`, `zoo.card_test_time`), and `bridge-predict` says which settings
+it uses and why."""
 import json
 import os
 import shutil
