@@ -16,7 +16,8 @@ import select
 import sys
 import textwrap
 import warnings
-from collections.abc import Sequence
+
+from bridge_jax import testtime
 
 DEBUG_ENV = "BRIDGE_JAX_DEBUG"
 
@@ -100,34 +101,47 @@ def parse_working_size(text: str):
         raise argparse.ArgumentTypeError(f"expected HxW like 256x512, 'native' or 'trained', got {text!r}") from None
 
 
-def add_refine_option(parser: argparse.ArgumentParser) -> None:
-    """``--refine K``: test-time refinement passes (`inference.refine_maps`); None = the model card's choice."""
+def add_test_time_options(parser: argparse.ArgumentParser) -> None:
+    """``--refine K``, ``--symmetry MODE``, ``--polish MODE``: the fields of a `testtime.TestTime`; each None
+    when not given (the model card's choice). `given_test_time` reads them back."""
     parser.add_argument("--refine", type=int, default=None, metavar="K",
                         help="test-time refinement: run the network K more times per pair, each on the second image "
-                             "warped by the estimate so far, and add what it still finds (K+1 times the cost; 0 = "
-                             "off, at most 8); default: what a shipped model's card recommends, else 0")
-
-
-def add_symmetry_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> None:
-    """``--symmetry MODE``: test-time symmetry averaging (`inference.symmetric_estimate`); None = the model
-    card's choice. `modes`: `inference.SYMMETRY_MODES` (passed in: inference imports zoo, which imports this
-    module)."""
-    parser.add_argument("--symmetry", default=None, choices=tuple(modes),
+                             "warped by the maps so far, and add what it still finds (K+1 times the cost; 0 = "
+                             f"off, at most {testtime.MAX_REFINE}); default: what a shipped model's card "
+                             "recommends, else 0")
+    parser.add_argument("--symmetry", default=None, choices=testtime.SYMMETRY_MODES,
                         help="test-time symmetry averaging: average the network's maps over the pair as given and "
                              "mirrored left-right, upside-down and both ('flips', 4x the cost), plus those four "
                              "transposed for flow pairs ('dihedral', 8x); default: what a shipped model's card "
                              "recommends, else none")
-
-
-def add_polish_option(parser: argparse.ArgumentParser, modes: Sequence[str]) -> None:
-    """``--polish MODE``: test-time photometric polish (`bridge_jax.polish`); None = the model card's choice.
-    `modes`: `polish.POLISH_MODES` (passed in, like `add_symmetry_option`'s)."""
-    parser.add_argument("--polish", default=None, choices=tuple(modes),
+    parser.add_argument("--polish", default=None, choices=testtime.POLISH_MODES,
                         help="test-time polish of the final maps against the images themselves: 'photometric' "
                              "lets each pixel take a neighbour's value where that matches clearly better (sharper "
-                             "motion boundaries), then a variational refinement (sub-pixel; textureless regions and "
+                             "motion boundaries), then a variational fit (sub-pixel; textureless regions and "
                              "the image border take their neighbours' motion), twice; 'none' = the "
                              "network's maps as they are; default: what a shipped model's card recommends, else none")
+
+
+def given_test_time(args: argparse.Namespace) -> dict:
+    """The test-time settings the command line `args` gave (`add_test_time_options`): {field: value or None},
+    for `inference.load_predictor(test_time=..., options=testtime.OPTIONS)`."""
+    return {field: getattr(args, field, None) for field in testtime.OPTIONS}
+
+
+def add_task_option(parser: argparse.ArgumentParser, help: str, default: str = "flow") -> None:
+    """``--task flow|stereo``: what a pair is; ``--pair-kind`` is its old spelling (still read, with a note)."""
+    parser.add_argument("--task", default=default, choices=("flow", "stereo"), help=help)
+    parser.add_argument("--pair-kind", dest="task", choices=("flow", "stereo"), action=_OldSpelling,
+                        help=argparse.SUPPRESS)
+
+
+class _OldSpelling(argparse.Action):
+    """Stores an option given by an old name and prints one note naming the new one."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        new = "--" + self.dest.replace("_", "-")
+        print(f"note: {option_string} is now {new}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
 
 
 EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE: how a shell reports git or a coreutils command whose reader went away

@@ -11,7 +11,7 @@ Steps:
      writer; the same samples the trainer validates on),
   3. evaluate the trained model and the zero-motion / OpenCV baselines on it (bridge_jax.evaluate) into
      WORKDIR/eval (results.md, results.json, pictures/), run as the shipped `demo` model answers by default
-     (its card's test-time refinement passes and polish: `zoo.default_refine`, `zoo.default_polish`),
+     (its card's test-time stages: `zoo.card_test_time`),
   4. print where the metrics, TensorBoard logs and pictures are, and whether the model learned (validation
      flow EPE vs the zero-motion baseline, from one network pass as training validates), with what the
      evaluation of step 3 measured next to it.
@@ -67,15 +67,13 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
 
     # Step 3 runs the model as `--checkpoint demo` answers a user by default (the shipped card's refinement
     # passes and polish); the headline ratio stays training's single-pass validation, so both are reported.
-    refine, polish = zoo.default_refine("demo"), zoo.default_polish("demo")
-    print(f"[3/3] Evaluating the trained model (refine {refine}, polish {polish}: the shipped demo's defaults) and "
-          f"the baselines on it into {eval_dir}", flush=True)
-    predictor = inference.load_predictor(train_dir, height=second_run.height, width=second_run.width, refine=refine,
-                                         polish=polish)
+    test_time = zoo.card_test_time("demo")
+    print(f"[3/3] Evaluating the trained model (refine {test_time.refine}, symmetry {test_time.symmetry}, polish "
+          f"{test_time.polish}: the shipped demo's defaults) and the baselines on it into {eval_dir}", flush=True)
+    predictor = inference.load_predictor(train_dir, size=(second_run.height, second_run.width), test_time=test_time)
     results = evaluate.evaluate(predictor, "synthetic", val_dir, out_dir=eval_dir, overwrite=True,
                                 batch=second_run.eval.batch, progress=False,
-                                extra_info={"checkpoint": train_dir, "refine": predictor.refine,
-                                            "symmetry": predictor.symmetry, "polish": predictor.polish})
+                                extra_info={"checkpoint": train_dir, **predictor.test_time.to_dict()})
     val = result.get("validation", {})
     model = results["methods"]["model"]
     eval_flow, eval_disp = model["flow"]["per_image_mean"], model["disparity"]["per_image_mean"]
@@ -88,7 +86,7 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
         "val_flow_epe_vs_zero": val.get("flow_epe_vs_zero"), "val_flow_noc_vs_zero": val.get("flow_noc_vs_zero"),
         "val_disp_epe": val.get("disp_epe_all"),
         "zero_disp_epe": val.get("zero_disp_epe_all"), "val_d1_all": val.get("disp_d1_all"),
-        "eval_refine": refine, "eval_polish": polish, "eval_flow_epe": eval_flow["epe_all"],
+        "eval_refine": test_time.refine, "eval_polish": test_time.polish, "eval_flow_epe": eval_flow["epe_all"],
         "eval_flow_epe_vs_zero": eval_flow["epe_all"] / zero_flow if zero_flow else None,
         "eval_disp_epe": eval_disp["epe_all"], "eval_d1_all": eval_disp["d1_all"],
     }
@@ -110,7 +108,8 @@ def run(workdir: str, *, config_arg: str | None = None, overrides: dict | None =
               f"{summary['val_disp_epe']:.3f} px vs zero {summary['zero_disp_epe']:.3f} px (one network pass, as "
               f"training validates). Training took {train_s / 60:.1f} min.")
         if summary["eval_flow_epe_vs_zero"] is not None:
-            print(f"As `--checkpoint demo` answers by default (refine {refine}, polish {polish}; step 3's tables): "
+            print(f"As `--checkpoint demo` answers by default (refine {test_time.refine}, polish {test_time.polish}; "
+                  "step 3's tables): "
                   f"flow EPE {summary['eval_flow_epe']:.3f} px (ratio {summary['eval_flow_epe_vs_zero']:.2f}), "
                   f"disparity EPE {summary['eval_disp_epe']:.3f} px, D1 {summary['eval_d1_all']:.1f} %.")
     return summary

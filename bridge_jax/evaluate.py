@@ -39,7 +39,7 @@ from typing import Any, Optional
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, compile_cache, console, files, inference
+from bridge_jax import cli, compile_cache, console, files, inference, testtime
 from bridge_jax.eval.baselines import opencv_method, zero_method
 from bridge_jax.eval.datasets import DATASETS, EvaluationError, Frame, list_frames, load_frame
 from bridge_jax.eval.methods import ModelMethod
@@ -137,9 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
                    help=cli.WORKING_SIZE_HELP + "; default: what a shipped model's card recommends "
                         f"(long: native), else {inference.DEFAULT_WORKING_SIZE}")
-    cli.add_refine_option(p)
-    cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
-    cli.add_polish_option(p, inference.POLISH_MODES)
+    cli.add_test_time_options(p)
     p.add_argument("--batch", type=int, default=1, help="frames per inference call (one compiled shape)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="evaluate only the first N frames (a quick check; default: all)")
@@ -170,27 +168,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise EvaluationError(f"--max-frames must be >= 1, got {args.max_frames}")
         if args.out is not None:
             files.check_output_dir(args.out, args.overwrite)
-        predictor = (inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                              size_option="--working-size", refine=args.refine,
-                                              refine_option="--refine", symmetry=args.symmetry,
-                                              symmetry_option="--symmetry",
-                                              polish=args.polish, polish_option="--polish",
+        test_time = cli.given_test_time(args)
+        predictor = (inference.load_predictor(args.checkpoint, size=args.working_size, size_option="--working-size",
+                                              test_time=test_time, options=testtime.OPTIONS,
                                               executable_cache=compile_cache.active_dir())
                      if args.checkpoint else None)
-        if predictor is None and args.refine:
-            raise EvaluationError("--refine needs --checkpoint (the baselines have nothing to refine)")
-        if predictor is None and args.symmetry not in (None, "none"):
-            raise EvaluationError("--symmetry needs --checkpoint (the baselines have no network to average)")
-        if predictor is None and args.polish not in (None, "none"):
-            raise EvaluationError("--polish needs --checkpoint (the baselines have no network maps to polish)")
+        asked = [f for f, v in test_time.items() if v not in (None, 0, "none")]
+        if predictor is None and asked:
+            raise EvaluationError(f"{testtime.OPTIONS[asked[0]]} needs --checkpoint (the baselines have no network "
+                                  "maps to run test-time stages on)")
         results = evaluate(predictor, args.dataset, args.data_dir, split=args.split, baselines=not args.no_baselines,
                            garg_crop=not args.no_garg_crop, batch=args.batch, max_frames=args.max_frames,
                            out_dir=args.out, num_pictures=args.pictures, overwrite=args.overwrite,
                            progress=not args.no_progress,
                            extra_info={"checkpoint": args.checkpoint,
-                                       "refine": predictor.refine if predictor else None,
-                                       "symmetry": predictor.symmetry if predictor else None,
-                                       "polish": predictor.polish if predictor else None})
+                                       **(predictor.test_time.to_dict() if predictor else dict.fromkeys(test_time))})
     except (ValueError, OSError) as e:  # EvaluationError, CorruptImageError...: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(results["markdown"])

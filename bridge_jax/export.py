@@ -8,7 +8,8 @@ The exported function is the predictor's network (`bridge_jax.inference.Predicto
 `pairs (B, H, W, 6)` float32 in [0, 1] (image_a RGB, image_b RGB at the working size) to a tuple `(px0, frac0)`,
 each `(B, H, W, 2)` float32: the full-resolution map in pixels and as fractions of (W, H), after the
 predictor's test-time refinement passes, symmetry averaging and polish (`--refine`, `--symmetry`, `--polish`;
-default: what a shipped model's card recommends, as for predict; `inference.predicted_maps`). The working size
+default: what a shipped model's card recommends, as for predict; `stages.predicted_maps`, fused into one
+program). The working size
 `H x W` defaults to the size the checkpoint was trained at, else 256 x 512 (as for predict and evaluate); B is
 `--batch`. Load and run it without bridge_jax's model code:
 
@@ -30,28 +31,29 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from bridge_jax import cli, compile_cache, files, inference
+from bridge_jax import cli, compile_cache, files, inference, stages, testtime
 
 
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
     """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` at the predictor's working size, params as
-    constants, with the predictor's `refine` passes; `task` picks the network of a separate-networks model (and
-    for "stereo" keeps the refinement on image rows)."""
+    constants, with the predictor's test-time stages (`predictor.test_time`, `stages.predicted_maps`); `task`
+    picks the network of a separate-networks model (and for "stereo" keeps the maps on image rows)."""
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
-    if task not in inference.PAIR_KINDS:
-        raise ValueError(f"--task must be one of {inference.PAIR_KINDS}, got {task!r}")
+    inference.check_task(task, "--task")
     params = jax.tree.map(jnp.asarray, predictor.params)
     rows = predictor.net.static_rows((task == "stereo",) * batch)
-
-    keep_vertical = jnp.full((batch,), 0.0 if task == "stereo" else 1.0)
+    flow_rows = jnp.asarray(stages.flow_rows([task] * batch))
+    test_time = predictor.test_time
 
     def infer(pairs):
-        if not predictor.refine and predictor.symmetry == "none" and predictor.polish == "none":
+        if test_time == testtime.TestTime():
             maps = predictor.net(params, pairs, rows)
             return maps["px"][0], maps["frac"][0]
-        px = inference.predicted_maps(predictor.net, params, pairs, rows, keep_vertical, predictor.refine,
-                                      predictor.symmetry, predictor.polish)
+        network_program = lambda x: stages.network_maps(predictor.net, params, x, rows, flow_rows,
+                                                        test_time.network_part)
+        polish_program = lambda x, maps, flows: stages.polish_stage(x, maps, flows, test_time, predictor.polish_config)
+        px = stages.predicted_maps(pairs, flow_rows, test_time, network_program, polish_program)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
@@ -85,12 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "(B, H, W, 6))")
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32",
                     help="compute dtype baked into the artifact (weights stay float32)")
-    ap.add_argument("--task", choices=list(inference.PAIR_KINDS), default="flow",
+    ap.add_argument("--task", choices=list(inference.TASKS), default="flow",
                     help="which network of a separate-networks checkpoint to export (flow: consecutive frames, "
                          "stereo: left/right pairs); a shared network is the same for both")
-    cli.add_refine_option(ap)
-    cli.add_symmetry_option(ap, inference.SYMMETRY_MODES)
-    cli.add_polish_option(ap, inference.POLISH_MODES)
+    cli.add_test_time_options(ap)
     compile_cache.add_option(ap)
     cli.add_debug_flag(ap)
     return ap
@@ -104,10 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.batch < 1:   # checked before the (slow) checkpoint load
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
         predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
-                                             dtype=args.dtype, size_option="--height/--width", refine=args.refine,
-                                             refine_option="--refine", symmetry=args.symmetry,
-                                             symmetry_option="--symmetry", polish=args.polish,
-                                             polish_option="--polish")
+                                             dtype=args.dtype, size_option="--height/--width",
+                                             test_time=cli.given_test_time(args), options=testtime.OPTIONS)
         exp = export_network(predictor, batch=args.batch, task=args.task)
         out = serialize_to_file(exp, args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
@@ -117,8 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     shape = [args.batch, predictor.height, predictor.width]
     print(json.dumps({"out": str(out), "bytes": out.stat().st_size, "model": predictor.model_cfg["name"],
                       "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype,
-                      "refine": predictor.refine, "symmetry": predictor.symmetry,
-                      "polish": predictor.polish}))
+                      **predictor.test_time.to_dict()}))
     return 0
 
 

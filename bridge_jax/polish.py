@@ -12,13 +12,13 @@ themselves can correct, with the same photometric criterion the network was trai
    it costs at most `ratio` times its own value's cost, less a small margin (so that flat, textureless or
    occluded regions, where every candidate scores alike, keep the network's value). A PatchMatch propagation
    step seeded by the network.
-2. **Sub-pixel noise, textureless regions, the image border** (`variational_refinement`). A combined
+2. **Sub-pixel noise, textureless regions, the image border** (`variational_fit`). A combined
    local-global energy: windowed Lucas-Kanade data terms where the images have texture, an edge-aware robust
    smoothness term everywhere, minimised by a few warps of red-black SOR. Where the images say little (sky,
    walls, pixels whose match leaves `b`) the map takes its neighbours' motion; a motion boundary on an image
    edge stays sharp.
 
-`polish_maps` runs both twice (`POLISH_ROUNDS`): the second round's candidates come from a map that the first
+`polish_maps` runs both twice (`PolishConfig.rounds`): the second round's candidates come from a map that the first
 made right on wider areas. Both steps compare locally normalised grey images (zero mean, unit contrast over a
 15x15 window, `normalise_locally`): gain, offset and gamma differences between two cameras then cancel to first
 order, which raw brightness constancy would read as motion. `b` is normalised *after* it is warped into `a`'s
@@ -26,14 +26,13 @@ frame (`warped_normalised`), so that both windows cover the same piece of the sc
 frame, `b`'s windows near its border are reflected where `a`'s are not, which biased every pixel whose match
 lies near that border.
 
-Measured on `long` (experiments/results/real_images.md, 2026-12-04): photo flow 1.74 px without the polish,
-1.46 px with one round of candidate selection and three Lucas-Kanade steps (the polish before the refinement),
-0.91 px now (DIS: 1.21 px); Motorcycle D1 14.6 % -> 12.6 % -> 11.0 % (SGBM: 15.0 %). The numbers are then the network's answer corrected by a local
-photometric optimisation, no longer the network's alone; `polish="none"` gives those.
+The numbers are then the network's answer corrected by a local photometric optimisation, no longer the
+network's alone; `TestTime(polish="none")` gives those. Every parameter of the polish is a field of one frozen
+`PolishConfig`, which keys its compiled program (`Predictor._polish_program`).
 """
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -41,58 +40,62 @@ import numpy as np
 
 from bridge_jax import geometry
 
-POLISH_ROUNDS = 2
-"""Rounds of (`select_candidates`, `variational_refinement`) in `polish_maps`."""
 
-POLISH_MODES = ("none", "photometric")
-"""Test-time polish of a predictor's maps: "none", or "photometric" (`polish_maps`)."""
+@dataclasses.dataclass(frozen=True)
+class PolishConfig:
+    """The parameters of the photometric polish (`polish_maps`); hashable, so a compiled polish is kept per
+    config. Lengths are working pixels, grey levels are in [0, 1] (normalised ones where said)."""
 
-NORMALISE_RADIUS = 7
-"""Half size of the window `normalise_locally` takes the mean and contrast over (15x15)."""
-CONTRAST_FLOOR = 0.05
-"""Added to the local contrast before dividing (grey levels in [0, 1]): flat regions are not blown up into noise."""
-CANDIDATE_DISTANCES = (4, 8, 16, 24)
-"""How far (working pixels) `select_candidates` looks for another value of the map, in each of 8 directions."""
-COST_RADIUS = 4
-"""Half size of the window `matching_cost` averages over (9x9)."""
-ACCEPT_RATIO = 0.7
-"""A candidate replaces a pixel's own value only at no more than this share of its cost..."""
-ACCEPT_MARGIN = 1e-4
-"""...and at least this much below it (normalised grey levels): on a flat image every cost is float rounding
-noise (~1e-7), and no ratio of two rounding noises means anything. A margin of 0.01 cost `long` 0.02 px on the
-photo flow check (2026-12-04): weakly textured windows cost only a few hundredths."""
-SMOOTHNESS_WEIGHT = 2.0
-"""alpha of `variational_refinement`: the weight of the smoothness term next to the windowed data term."""
-EDGE_SCALE = 0.05
-"""Grey-level difference (in [0, 1]) over which a neighbour's smoothness weight falls by e (`edge_weights`)."""
-DATA_EPS = 0.1
-"""Charbonnier epsilon of the data term (normalised grey levels): residuals much larger weigh 1/|residual|."""
-SMOOTH_EPS = 0.1
-"""Charbonnier epsilon of the smoothness term (pixels): map differences much larger weigh 1/|difference|,
-so a motion boundary the earlier steps made sharp stays sharp."""
-VARIATIONAL_SIGMA = 1.5
-"""Standard deviation (pixels) of the Gaussian window of the data term (the "local" half of the CLG energy)."""
-VARIATIONAL_WARPS = 5
-"""Outer iterations of `variational_refinement`: b re-warped, the energy re-linearised, weights recomputed."""
-SOR_SWEEPS = 20
-"""Red-black successive over-relaxation sweeps per outer iteration."""
-SOR_OMEGA = 1.9
-"""Over-relaxation factor of those sweeps (1 = Gauss-Seidel)."""
-DATA_PRIOR = 1e-3
-"""Added to the diagonal of the windowed data term: the 2x2 systems stay well posed without texture or smoothness."""
+    rounds: int = 2
+    """Rounds of (`select_candidates`, `variational_fit`) in `polish_maps`."""
+    normalise_radius: int = 7
+    """Half size of the window `normalise_locally` takes the mean and contrast over (15x15)."""
+    contrast_floor: float = 0.05
+    """Added to the local contrast before dividing: flat regions are not blown up into noise."""
+    candidate_distances: tuple[int, ...] = (4, 8, 16, 24)
+    """How far `select_candidates` looks for another value of the map, in each of 8 directions."""
+    cost_radius: int = 4
+    """Half size of the window `matching_cost` averages over (9x9)."""
+    accept_ratio: float = 0.7
+    """A candidate replaces a pixel's own value only at no more than this share of its cost..."""
+    accept_margin: float = 1e-4
+    """...and at least this much below it (normalised grey levels): on a flat image every cost is float
+    rounding noise (~1e-7), and no ratio of two rounding noises means anything; weakly textured windows cost
+    only a few hundredths, so the margin stays well below that."""
+    smoothness_weight: float = 2.0
+    """alpha of `variational_fit`: the weight of the smoothness term next to the windowed data term."""
+    edge_scale: float = 0.05
+    """Grey-level difference over which a neighbour's smoothness weight falls by e (`edge_weights`)."""
+    data_eps: float = 0.1
+    """Charbonnier epsilon of the data term (normalised grey levels): residuals much larger weigh 1/|residual|."""
+    smooth_eps: float = 0.1
+    """Charbonnier epsilon of the smoothness term (pixels): map differences much larger weigh 1/|difference|,
+    so a motion boundary the earlier steps made sharp stays sharp."""
+    variational_sigma: float = 1.5
+    """Standard deviation of the Gaussian window of the data term (the "local" half of the CLG energy)."""
+    variational_warps: int = 5
+    """Outer iterations of `variational_fit`: b re-warped, the energy re-linearised, weights recomputed."""
+    sor_sweeps: int = 20
+    """Red-black successive over-relaxation sweeps per outer iteration."""
+    sor_omega: float = 1.9
+    """Over-relaxation factor of those sweeps (1 = Gauss-Seidel)."""
+    data_prior: float = 1e-3
+    """Added to the diagonal of the windowed data term: the 2x2 systems stay well posed without texture or
+    smoothness."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "candidate_distances", tuple(int(d) for d in self.candidate_distances))
+        if self.rounds < 0 or min((self.normalise_radius, self.cost_radius, self.variational_warps,
+                                   self.sor_sweeps), default=0) < 0 or not self.candidate_distances:
+            raise ValueError(f"PolishConfig: counts and radii must be >= 0 and candidate_distances non-empty: {self}")
 
 
-def component_mask(keep_vertical: jax.Array) -> jax.Array:
+DEFAULT_CONFIG = PolishConfig()
+
+def component_mask(flow_rows: jax.Array) -> jax.Array:
     """`(N, 1, 1, 2)` 1 for the map components a row keeps: (1, 1) for flow rows, (1, 0) for rectified stereo rows
-    (`keep_vertical (N,)`: 1.0 flow, 0.0 stereo), to multiply `(N, H, W, 2)` maps by."""
-    return jnp.stack([jnp.ones_like(keep_vertical), keep_vertical], -1)[:, None, None, :]
-
-
-def check_polish(polish: Any, option: str = "polish") -> str:
-    """`polish` if it is one of `POLISH_MODES`, else a ValueError naming `option`."""
-    if polish not in POLISH_MODES:
-        raise ValueError(f"{option} {polish!r}: expected one of {', '.join(POLISH_MODES)}")
-    return polish
+    (`flow_rows (N,)`: 1.0 flow, 0.0 stereo), to multiply `(N, H, W, 2)` maps by."""
+    return jnp.stack([jnp.ones_like(flow_rows), flow_rows], -1)[:, None, None, :]
 
 
 # ------------------------------------------------------------------------------------------ filters
@@ -118,7 +121,8 @@ def gaussian_filter(x: jax.Array, sigma: float) -> jax.Array:
     return _separable(x, (t / t.sum()).astype(np.float32))
 
 
-def normalise_locally(grey: jax.Array, radius: int = NORMALISE_RADIUS, floor: float = CONTRAST_FLOOR) -> jax.Array:
+def normalise_locally(grey: jax.Array, radius: int = DEFAULT_CONFIG.normalise_radius,
+                      floor: float = DEFAULT_CONFIG.contrast_floor) -> jax.Array:
     """`(N, H, W)` grey image minus its local mean, over its local contrast (std) plus `floor`."""
     centred = grey - box_filter(grey, radius)
     return centred / (jnp.sqrt(box_filter(centred * centred, radius)) + floor)
@@ -136,15 +140,17 @@ def _warp_grey(image: jax.Array, maps: jax.Array) -> jax.Array:
     return geometry.warp(image[..., None], maps)[..., 0]
 
 
-def warped_normalised(grey_b: jax.Array, maps: jax.Array) -> jax.Array:
+def warped_normalised(grey_b: jax.Array, maps: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """`(N, H, W)` grey image `b` warped into `a`'s frame by `maps`, then normalised there (`normalise_locally`)."""
-    return normalise_locally(_warp_grey(grey_b, maps))
+    return normalise_locally(_warp_grey(grey_b, maps), config.normalise_radius, config.contrast_floor)
 
 
 # ------------------------------------------------------------------------------ candidate selection
-def matching_cost(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, radius: int = COST_RADIUS) -> jax.Array:
-    """Windowed mean |norm(a) - norm(warp(b, map))| (`(N, H, W)`: `a` normalised, `b` grey; `maps (N, H, W, 2)`)."""
-    return box_filter(jnp.abs(warped_normalised(grey_b, maps) - norm_a), radius)
+def matching_cost(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array,
+                  config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
+    """Windowed mean |norm(a) - norm(warp(b, map))| over `config.cost_radius` (`(N, H, W)`: `a` normalised, `b`
+    grey; `maps (N, H, W, 2)`)."""
+    return box_filter(jnp.abs(warped_normalised(grey_b, maps, config) - norm_a), config.cost_radius)
 
 
 def _shifted(maps: jax.Array, dx: jax.Array, dy: jax.Array) -> jax.Array:
@@ -155,17 +161,17 @@ def _shifted(maps: jax.Array, dx: jax.Array, dy: jax.Array) -> jax.Array:
     return maps[:, rows][:, :, cols]
 
 
-def candidate_offsets(distances=CANDIDATE_DISTANCES) -> np.ndarray:
+def candidate_offsets(distances=DEFAULT_CONFIG.candidate_distances) -> np.ndarray:
     """`(8 * len(distances), 2)` int (dx, dy): each distance in the 8 directions of the compass."""
     dirs = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1)]
     return np.array([(ux * d, uy * d) for d in distances for ux, uy in dirs], np.int32)
 
 
-def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mask: jax.Array, *,
-                      distances=CANDIDATE_DISTANCES, radius: int = COST_RADIUS,
-                      ratio: float = ACCEPT_RATIO, margin: float = ACCEPT_MARGIN) -> jax.Array:
-    """Each pixel's map value replaced by the best of its neighbours' (`candidate_offsets`) where that one
-    matches clearly better (cost < `ratio` x its own - `margin`; then the cheapest wins).
+def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mask: jax.Array,
+                      config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
+    """Each pixel's map value replaced by the best of its neighbours' (`candidate_offsets` of
+    `config.candidate_distances`) where that one matches clearly better (cost < `config.accept_ratio` x its own -
+    `config.accept_margin`; then the cheapest wins).
 
     Args:
       norm_a: `(N, H, W)` grey image `a`, locally normalised (`normalise_locally`).
@@ -175,20 +181,21 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
     Returns:
       `(N, H, W, 2)` maps.
     """
-    own = matching_cost(norm_a, grey_b, maps, radius)
+    own = matching_cost(norm_a, grey_b, maps, config)
 
     def try_one(carry, offset):
         best_cost, best = carry
         cand = _shifted(maps, offset[0], offset[1]) * mask
-        cost = matching_cost(norm_a, grey_b, cand, radius)
+        cost = matching_cost(norm_a, grey_b, cand, config)
         better = cost < best_cost
         return (jnp.where(better, cost, best_cost), jnp.where(better[..., None], cand, best)), None
 
-    (_, best), _ = jax.lax.scan(try_one, (own * ratio - margin, maps), jnp.asarray(candidate_offsets(distances)))
+    start = (own * config.accept_ratio - config.accept_margin, maps)
+    (_, best), _ = jax.lax.scan(try_one, start, jnp.asarray(candidate_offsets(config.candidate_distances)))
     return best
 
 
-# ----------------------------------------------------------------------------- variational refinement
+# ----------------------------------------------------------------------------- variational fit
 _NEIGHBOURS = ((0, 1), (1, 0), (0, -1), (-1, 0))
 """(dy, dx) of the 4 neighbours the smoothness term couples."""
 
@@ -201,7 +208,7 @@ def _neighbour(x: jax.Array, dy: int, dx: int) -> jax.Array:
     return y[:, max(dy, 0):max(dy, 0) + h, max(dx, 0):max(dx, 0) + w]
 
 
-def edge_weights(grey_a: jax.Array, scale: float = EDGE_SCALE) -> list[jax.Array]:
+def edge_weights(grey_a: jax.Array, scale: float = DEFAULT_CONFIG.edge_scale) -> list[jax.Array]:
     """Smoothness weight of each pixel to each of its 4 `_NEIGHBOURS`, `(N, H, W)` each:
     exp(-|a_neighbour - a| / scale) on `a` lightly smoothed (sigma 0.7 px), 0 where the neighbour is outside
     the image. A map may change where the image changes, and is pulled together where it does not."""
@@ -215,22 +222,22 @@ def edge_weights(grey_a: jax.Array, scale: float = EDGE_SCALE) -> list[jax.Array
     return out
 
 
-def variational_refinement(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, maps: jax.Array,
-                           keep_vertical: jax.Array, *, alpha: float = SMOOTHNESS_WEIGHT,
-                           warps: int = VARIATIONAL_WARPS, sweeps: int = SOR_SWEEPS,
-                           omega: float = SOR_OMEGA) -> jax.Array:
-    """Combined local-global refinement (Bruhn, Weickert and Schnorr's CLG energy) of `maps`.
+def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, maps: jax.Array,
+                    flow_rows: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
+    """`maps` fitted to the images by a combined local-global energy (Bruhn, Weickert and Schnorr's CLG).
 
     Minimises over the map D, linearised about the current D0 (D = D0 + d),
 
         sum_x  d^T J d + 2 d^T j  +  alpha sum_{x~y} c_xy psi_s(|D0_x - D0_y|) |D_x - D_y|^2,
 
-    where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`VARIATIONAL_SIGMA`) data terms
+    where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`variational_sigma`) data terms
     of Lucas-Kanade on the locally normalised images, rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly
     (occlusions), c_xy are the `edge_weights` of `a`, and psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust
     smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
-    up, so its value comes from its neighbours. Each of `warps` outer iterations re-warps `b`, recomputes the
-    weights and runs `sweeps` red-black SOR sweeps on the 2x2 (stereo rows: 1x1) per-pixel systems.
+    up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations re-warps `b`,
+    recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps (`config.sor_omega`) on the 2x2
+    (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight`, eps = `config.data_eps`, eps_s =
+    `config.smooth_eps`.
 
     Where the earlier steps leave noise the smoothness term averages it with the neighbours' values, weighted by
     how well each is determined; textureless regions (sky, walls) and the image border take their neighbours'
@@ -242,31 +249,34 @@ def variational_refinement(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Arr
       grey_a: `(N, H, W)` grey image `a` in [0, 1] (for the edge weights).
       grey_b: `(N, H, W)` grey image `b` (normalised after each warp, `warped_normalised`).
       maps: `(N, H, W, 2)` pixel maps a -> b.
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (vertical component stays 0).
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (vertical component stays 0).
     Returns:
       `(N, H, W, 2)` maps.
     """
+    alpha, omega, smooth_eps, data_eps = (config.smoothness_weight, config.sor_omega, config.smooth_eps,
+                                          config.data_eps)
     h, w = norm_a.shape[1:]
-    flow_row = (keep_vertical > 0.5)[:, None, None]
-    mask = component_mask(keep_vertical)
+    flow_row = (flow_rows > 0.5)[:, None, None]
+    mask = component_mask(flow_rows)
     ax, ay = gradients(norm_a)
-    edges = edge_weights(grey_a)
+    edges = edge_weights(grey_a, config.edge_scale)
     red = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 == 0)[None, ..., None]
     xs = jnp.arange(w, dtype=jnp.float32)[None, None, :]
     ys = jnp.arange(h, dtype=jnp.float32)[None, :, None]
-    win = lambda x: gaussian_filter(x, VARIATIONAL_SIGMA)
+    win = lambda x: gaussian_filter(x, config.variational_sigma)
 
     def warp_iteration(_, d0):
-        warped = warped_normalised(grey_b, d0)
+        warped = warped_normalised(grey_b, d0, config)
         it = warped - norm_a
         bx, by = gradients(warped)
         gx, gy = 0.5 * (ax + bx), 0.5 * (ay + by)
         px, py = xs + d0[..., 0], ys + d0[..., 1]
         inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
-        rho = jnp.where(inside, 1.0 / jnp.sqrt(it * it + DATA_EPS ** 2), 0.0)
-        jxx, jxy, jyy = win(rho * gx * gx) + DATA_PRIOR, win(rho * gx * gy), win(rho * gy * gy) + DATA_PRIOR
+        rho = jnp.where(inside, 1.0 / jnp.sqrt(it * it + data_eps ** 2), 0.0)
+        prior = config.data_prior
+        jxx, jxy, jyy = win(rho * gx * gx) + prior, win(rho * gx * gy), win(rho * gy * gy) + prior
         jx, jy = win(rho * gx * it), win(rho * gy * it)
-        coupling = [alpha * c * SMOOTH_EPS / jnp.sqrt(jnp.sum((_neighbour(d0, dy, dx) - d0) ** 2, -1) + SMOOTH_EPS ** 2)
+        coupling = [alpha * c * smooth_eps / jnp.sqrt(jnp.sum((_neighbour(d0, dy, dx) - d0) ** 2, -1) + smooth_eps ** 2)
                     for c, (dy, dx) in zip(edges, _NEIGHBOURS)]
         total = sum(coupling)
         sxx, syy = jxx + total, jyy + total
@@ -289,30 +299,32 @@ def variational_refinement(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Arr
                 d = jnp.where(colour, (1.0 - omega) * d + omega * solve(d), d)
             return d
 
-        d = jax.lax.fori_loop(0, sweeps, sweep, jnp.zeros_like(d0))
+        d = jax.lax.fori_loop(0, config.sor_sweeps, sweep, jnp.zeros_like(d0))
         return d0 + jnp.clip(d, -2.0, 2.0) * mask  # the linearisation holds about a pixel or two
 
-    return jax.lax.fori_loop(0, warps, warp_iteration, maps * mask)
+    return jax.lax.fori_loop(0, config.variational_warps, warp_iteration, maps * mask)
 
 
-def polish_maps(pairs: jax.Array, maps: jax.Array, keep_vertical: jax.Array) -> jax.Array:
-    """The "photometric" polish: `POLISH_ROUNDS` rounds of `select_candidates`, then `variational_refinement`
+def polish_maps(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
+                config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
+    """The "photometric" polish: `config.rounds` rounds of `select_candidates`, then `variational_fit`
     (the second round's candidates come from a map the first round made right on wider areas).
 
     Args:
       pairs: `(N, H, W, 6)` = [image a, image b], RGB in [0, 1] at the working size.
       maps: `(N, H, W, 2)` working-pixel maps a -> b (the network's, refined and averaged as asked).
-      keep_vertical: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (their vertical component stays 0).
+      flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (their vertical component stays 0).
+      config: the parameters (hashable: a static argument where jitted).
     Returns:
       `(N, H, W, 2)` polished maps.
     """
     pairs, maps = pairs.astype(jnp.float32), maps.astype(jnp.float32)
-    keep_vertical = keep_vertical.astype(jnp.float32)
+    flow_rows = flow_rows.astype(jnp.float32)
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
-    norm_a = normalise_locally(grey_a)
-    mask = component_mask(keep_vertical)
+    norm_a = normalise_locally(grey_a, config.normalise_radius, config.contrast_floor)
+    mask = component_mask(flow_rows)
     maps = maps * mask
-    for _ in range(POLISH_ROUNDS):
-        maps = select_candidates(norm_a, grey_b, maps, mask)
-        maps = variational_refinement(norm_a, grey_a, grey_b, maps, keep_vertical)
+    for _ in range(config.rounds):
+        maps = select_candidates(norm_a, grey_b, maps, mask, config)
+        maps = variational_fit(norm_a, grey_a, grey_b, maps, flow_rows, config)
     return maps

@@ -1,6 +1,6 @@
 """Run a trained model on your own images or video and write pictures and raw values.
 
-    # optical flow between two frames (or --pair-kind stereo for a rectified left/right pair)
+    # optical flow between two frames (or --task stereo for a rectified left/right pair)
     bridge-predict --checkpoint demo frame0.png frame1.png --out out/
     # a stereo-video cycle: left_t right_t left_t1 right_t1 → disparity at t and t+1, flow, depth
     bridge-predict --checkpoint demo lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
@@ -59,7 +59,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import cli, compile_cache, console, files, flowio, inference, metrics, visualize, zoo
+from bridge_jax import (cli, compile_cache, console, files, flowio, inference, metrics, resizing, testtime, visualize,
+                        zoo)
 from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -247,7 +248,7 @@ def _video_stream(paths: Sequence[str], sbs: bool):
         yield frame, None
 
 
-def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "flow",
+def open_inputs(inputs: Sequence[str], *, mode: str = "auto", task: str = "flow",
                 stereo_video: str = "none") -> Source:
     """Work out what the inputs are and return a frame stream (errors name the offending path)."""
     if not inputs:
@@ -270,7 +271,7 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", pair_kind: str = "
     if mode == "pair":
         if len(inputs) != 2:
             raise PredictError(f"--mode pair needs 2 images, got {len(inputs)}")
-        if pair_kind == "stereo":
+        if task == "stereo":
             return Source("pair", True, _image_stream([inputs[0]], [inputs[1]]), 1,
                           description="stereo pair (left, right)", names=unique_stems([inputs[0]]),
                           inputs=_path_inputs([inputs[0]], [inputs[1]]))
@@ -371,10 +372,10 @@ def _sample(values: np.ndarray) -> np.ndarray:
 
 
 def _by_rows(fn: Callable, *maps: np.ndarray) -> np.ndarray:
-    """`fn(*maps)` for a pixelwise `fn` (colour coding, PNG encoding) computed `inference.ROW_BLOCK_PIXELS` pixels
+    """`fn(*maps)` for a pixelwise `fn` (colour coding, PNG encoding) computed `resizing.ROW_BLOCK_PIXELS` pixels
     at a time, so a large map never has full-size float64 temporaries."""
     h, w = maps[0].shape[:2]
-    rows = max(1, inference.ROW_BLOCK_PIXELS // max(1, w))
+    rows = max(1, resizing.ROW_BLOCK_PIXELS // max(1, w))
     if h <= rows:
         return fn(*maps)
     first = fn(*(m[:rows] for m in maps))
@@ -695,16 +696,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", default="auto", choices=("auto", "pair", "cycle", "folder", "video"),
                    help="what INPUTS are; auto: 2 images = pair, 4 images = cycle, a folder = folder, "
                         "1-2 videos = video")
-    p.add_argument("--pair-kind", default="flow", choices=("flow", "stereo"),
-                   help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
+    cli.add_task_option(p, help="two images: consecutive frames (flow) or a rectified left/right pair (stereo)")
     p.add_argument("--stereo-video", default="none", choices=("none", "sbs"),
                    help="one video: mono (none) or left|right side by side in each frame (sbs)")
     p.add_argument("--working-size", type=cli.parse_working_size, default=None, metavar="HxW|native|trained",
                    help=cli.WORKING_SIZE_HELP + "; default: what the card of the shipped model it is or was "
                         f"fine-tuned from recommends (long: native), else {inference.DEFAULT_WORKING_SIZE}")
-    cli.add_refine_option(p)
-    cli.add_symmetry_option(p, inference.SYMMETRY_MODES)
-    cli.add_polish_option(p, inference.POLISH_MODES)
+    cli.add_test_time_options(p)
     p.add_argument("--batch", type=int, default=4,
                    help="pairs per inference call (one compiled shape; fewer when the input has fewer pairs)")
     p.add_argument("--compile", default="auto", choices=inference.COMPILE_MODES,
@@ -757,9 +755,8 @@ def settings_line(checkpoint: str, predictor, given: Sequence[str] = ()) -> str:
     """The one line saying which test-time settings `predictor` (loaded from `checkpoint`) runs with and why:
     the card of the shipped model the checkpoint is or was fine-tuned from (`zoo.card_lineage`), or the plain
     defaults; settings of `given` (those of `SETTINGS_OPTIONS` the user gave) are marked as given."""
-    size = "native" if predictor.native else f"{predictor.height}x{predictor.width}"
-    values = zip(SETTINGS_OPTIONS, (f"working size {size}", f"refine {predictor.refine}",
-                                    f"symmetry {predictor.symmetry}", f"polish {predictor.polish}"))
+    settings = predictor.settings()  # working_size, then the test-time fields, in SETTINGS_OPTIONS' order
+    values = zip(SETTINGS_OPTIONS, (f"{name.replace('_', ' ')} {value}" for name, value in settings.items()))
     parts = [f"{text} ({option})" if option in given else text for option, text in values]
     chain = zoo.card_lineage(checkpoint)
     if len(chain) == 1:
@@ -775,14 +772,13 @@ def settings_line(checkpoint: str, predictor, given: Sequence[str] = ()) -> str:
 def predictor_from_args(args: argparse.Namespace, num_pairs: Optional[int]):
     """The predictor of the command line `args` (`inference.load_predictor`), after printing its
     `settings_line`; `num_pairs`: how many pairs it will run (`inference.compile_mode_for`), None if unknown."""
-    predictor = inference.load_predictor(args.checkpoint, working_size=args.working_size,
-                                         size_option="--working-size", refine=args.refine,
-                                         refine_option="--refine", symmetry=args.symmetry,
-                                         symmetry_option="--symmetry", polish=args.polish, polish_option="--polish",
+    test_time = cli.given_test_time(args)
+    predictor = inference.load_predictor(args.checkpoint, size=args.working_size, size_option="--working-size",
+                                         test_time=test_time, options=testtime.OPTIONS,
                                          executable_cache=compile_cache.active_dir(),
                                          compile_mode=inference.compile_mode_for(args.compile, num_pairs))
-    given = [option for option, value in zip(SETTINGS_OPTIONS, (args.working_size, args.refine, args.symmetry,
-                                                                 args.polish)) if value is not None]
+    given = [option for option, value in zip(SETTINGS_OPTIONS, (args.working_size, *test_time.values()))
+             if value is not None]
     print(settings_line(args.checkpoint, predictor, given), flush=True)
     return predictor
 
@@ -808,14 +804,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
-            source = open_inputs(args.inputs, mode=args.mode, pair_kind=args.pair_kind,
+            source = open_inputs(args.inputs, mode=args.mode, task=args.task,
                                  stereo_video=args.stereo_video)
             predictor = predictor_from_args(args, num_pairs=source.num_pairs)
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
-                                  info={"checkpoint": args.checkpoint, "refine": predictor.refine,
-                                        "symmetry": predictor.symmetry, "polish": predictor.polish})
+                                  info={"checkpoint": args.checkpoint, **predictor.test_time.to_dict()})
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))

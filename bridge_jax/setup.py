@@ -25,7 +25,7 @@ import ml_collections
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from bridge_jax import configs, cycle, losses, memory, models
+from bridge_jax import config_keys, cycle, losses, memory, models
 from bridge_jax.data.pipeline import DataConfig
 from bridge_jax.micro_batch import MicroBatchedStep
 from bridge_jax.models.layers import WEIGHT_GRAD_METHODS
@@ -448,7 +448,7 @@ def parse(config: ml_collections.ConfigDict, *, devices: Optional[Sequence] = No
     if isinstance(config, ml_collections.ConfigDict) and config.get("stages", ()):
         raise ConfigError("this config is a recipe of stages (config.stages): run it with bridge-train or "
                           "train.train_and_evaluate, which parse each stage (bridge_jax.recipe.stage_config)")
-    config = configs.move_flat_keys(config)
+    config = config_keys.move_flat_keys(config)
     try:
         model_values = config["model"].to_dict()
         values = {cls: _values(config, name, cls) for name, cls in SECTIONS}
@@ -562,7 +562,7 @@ def list_config(config: ml_collections.ConfigDict) -> str:
     def section(key: str) -> str:
         return "stage_overrides" if key.startswith("stage_overrides.") else key.rpartition(".")[0]
 
-    keys = sorted(configs.leaf_keys(config), key=lambda k: (order.index(section(k)) if section(k) in order
+    keys = sorted(config_keys.leaf_keys(config), key=lambda k: (order.index(section(k)) if section(k) in order
                                                             else len(order), k))
     rows = []
     for key in keys:

@@ -556,7 +556,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
 
         ##### Update step and validation ###########################################################################
         step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
-        predictor = inference.Predictor(graphdef, state["params"], height=run.height, width=run.width,
+        predictor = inference.Predictor(graphdef, state["params"], size=inference.WorkingSize(run.height, run.width),
                                         dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                         mesh=mesh)
         logger = MetricsLogger(log_dir, is_main, resume_step=start_step,

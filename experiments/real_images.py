@@ -32,7 +32,7 @@ panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pi
 first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`; at the first
 `--refine`, `--symmetry` and `--polish` values, which the card then recommends). `--refine 0,2` scores each
 model without and with two test-time refinement passes (`inference.refine_maps`), `--symmetry none,flips`
-without and with test-time symmetry averaging (`inference.symmetric_estimate`), `--polish none,photometric`
+without and with test-time symmetry averaging (`inference.symmetric_maps`), `--polish none,photometric`
 without and with the test-time photometric polish (`bridge_jax.polish`); the default of all three, `card`, runs
 each model as its card says.
 """
@@ -51,7 +51,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO not in sys.path:
     sys.path.insert(0, REPO)
 
-from bridge_jax import inference, visualize  # noqa: E402
+from bridge_jax import inference, testtime, visualize  # noqa: E402
 from bridge_jax.bench import timing  # noqa: E402
 from bridge_jax.eval import real_checks  # noqa: E402
 
@@ -175,9 +175,8 @@ def main(argv=None) -> int:
             ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
             variants = [(r, y, q) for r in passes for y in symmetries for q in polishes]
             for k, (refine, symmetry, polish) in enumerate(variants):
-                pred = inference.load_predictor(model, working_size=ws, refine=refine, refine_option="--refine",
-                                                symmetry=symmetry, symmetry_option="--symmetry", polish=polish,
-                                                polish_option="--polish")
+                pred = inference.load_predictor(model, size=ws, options=testtime.OPTIONS,
+                                                test_time={"refine": refine, "symmetry": symmetry, "polish": polish})
                 label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
                 if size == "trained":
                     label += f" ({pred.height}x{pred.width})"

@@ -109,7 +109,7 @@ def test_commands_parse_with_their_own_clis(tmp_path):
     cmd = first.predict_command("a.png", "b.png", str(tmp_path / "out"), "demo", "native")
     assert cmd[:3] == [sys.executable, "-m", "bridge_jax.predict"]
     args = predict.build_parser().parse_args(cmd[3:])
-    assert (args.checkpoint, args.pair_kind, args.inputs, args.working_size) == ("demo", "flow", ["a.png", "b.png"],
+    assert (args.checkpoint, args.task, args.inputs, args.working_size) == ("demo", "flow", ["a.png", "b.png"],
                                                                                  "native")
     assert "--working-size" not in first.predict_command("a.png", "b.png", "o", "demo")
     args = predict.build_parser().parse_args(first.predict_command("a.png", "b.png", "o", "long", None, "dihedral")[3:])

@@ -1,5 +1,6 @@
 """A model fine-tuned from a shipped one keeps that model's recommended test-time settings (`zoo.card_lineage`,
-`zoo.defaults_source`, `zoo.default_*`), and `bridge-predict` says which settings it uses and why."""
+`zoo.defaults_source`, `zoo.card_working_size`, `zoo.card_test_time`), and `bridge-predict` says which settings
+it uses and why."""
 import json
 import os
 import shutil
@@ -18,9 +19,10 @@ FALLBACK = (None, 0, "none", "none")
 
 
 def _defaults(spec):
-    size = zoo.default_working_size(spec)
-    return (size if size is None or isinstance(size, str) else f"{size[0]}x{size[1]}", zoo.default_refine(spec),
-            zoo.default_symmetry(spec), zoo.default_polish(spec))
+    size = zoo.card_working_size(spec)
+    chosen = zoo.card_test_time(spec)
+    return (size if size is None or isinstance(size, str) else f"{size[0]}x{size[1]}", chosen.refine,
+            chosen.symmetry, chosen.polish)
 
 
 def _workdir(path, init_from, step=None):

@@ -38,7 +38,8 @@ def test_demo_short_runs_end_to_end_and_keeps_a_compile_cache(tmp_path):
     assert summary["zero_flow_epe"] > 0.5 and summary["zero_disp_epe"] > 0.5
     assert 0.2 < summary["val_flow_epe_vs_zero"] < 5.0
     # step 3 evaluates the model as the shipped demo answers by default, and its numbers are the tables'
-    assert (summary["eval_refine"], summary["eval_polish"]) == (zoo.default_refine("demo"), zoo.default_polish("demo"))
+    assert (summary["eval_refine"], summary["eval_polish"]) == (zoo.card_test_time("demo").refine,
+                                                                zoo.card_test_time("demo").polish)
     scored = json.loads((wd / "eval" / "results.json").read_text())
     assert (scored["refine"], scored["polish"]) == (summary["eval_refine"], summary["eval_polish"])
     assert summary["eval_flow_epe"] == scored["methods"]["model"]["flow"]["per_image_mean"]["epe_all"]

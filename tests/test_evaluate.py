@@ -125,9 +125,9 @@ class _FakePredictor(inference.Predictor):
     """The predictor with its network replaced by the same working-size map for every pair; records call sizes."""
 
     def __init__(self, h=64, w=128):
-        self.height, self.width, self.separate, self.calls = h, w, False, []
+        self.size, self.separate, self.calls = inference.WorkingSize(h, w), False, []
 
-    def run_network(self, pairs, is_stereo=False):
+    def run_network(self, pairs, tasks="flow"):
         self.calls.append(len(pairs))
         out = np.zeros((len(pairs), self.height, self.width, 2), np.float32)
         out[..., 0] = -4.0                               # disparity 4 working px / flow u = −4 px

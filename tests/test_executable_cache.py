@@ -119,18 +119,18 @@ def test_a_predictor_keeps_its_network_and_a_new_one_loads_it(fresh_compiles, tm
                                    executable_cache=folder)
 
     first = predictor(str(tmp_path))
-    kept = first.run_network(pairs, [True, False])  # first: a program this process compiled before is not kept
+    kept = first.run_network(pairs, ["stereo", "flow"])  # first: a program this process compiled before is not kept
     assert first.trace_count == 1 and len(os.listdir(tmp_path)) == 1
-    ref = predictor(None).run_network(pairs, [True, False])
+    ref = predictor(None).run_network(pairs, ["stereo", "flow"])
     np.testing.assert_allclose(kept, ref, rtol=1e-6, atol=1e-6)
     second = predictor(str(tmp_path))
-    out = second.run_network(pairs, [True, False])
+    out = second.run_network(pairs, ["stereo", "flow"])
     assert second.trace_count == 0  # loaded whole: not traced
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6)
     assert np.abs(ref).max() > 0
-    second.refine = 0  # another static argument: another program, compiled and kept
-    kept = second.run_network(pairs, [True, False])
-    unrefined = predictor(None, refine=0).run_network(pairs, [True, False])
+    second.test_time = inference.TestTime(refine=0)  # another static argument: another program, compiled and kept
+    kept = second.run_network(pairs, ["stereo", "flow"])
+    unrefined = predictor(None, refine=0).run_network(pairs, ["stereo", "flow"])
     assert np.abs(unrefined - ref).max() > 1e-4  # the refinement pass changes the maps: the test can tell
     np.testing.assert_allclose(kept, unrefined, rtol=1e-6, atol=1e-6)
     assert second.trace_count == 1 and len(os.listdir(tmp_path)) == 2
@@ -265,7 +265,7 @@ def test_the_predict_command_finds_its_kept_network_in_a_new_process(tmp_path):
     env["BRIDGE_JAX_CACHE_DIR"] = str(cache)
 
     def predict(out):
-        r = subprocess.run([sys.executable, "-m", "bridge_jax.predict", "--checkpoint", "demo", "--pair-kind",
+        r = subprocess.run([sys.executable, "-m", "bridge_jax.predict", "--checkpoint", "demo", "--task",
                             "flow", a, b, "--out", str(tmp_path / out), "--working-size", "64x128", "--refine", "0",
                             "--raw", "npy"], env=env, capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]

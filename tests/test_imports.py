@@ -1,5 +1,8 @@
 """The import graph of the package runs one way: no cycle (imports inside functions included), and no library
-module imports a command-line module. Read from the source (AST), so nothing is imported to check it."""
+module imports a command-line module. Read from the source (AST), so nothing is imported to check it.
+
+Importing `pkg.sub` runs `pkg/__init__.py` first (and whatever that imports), so an import of a submodule counts
+as an import of each package above it too, except the importer's own packages (already being imported)."""
 
 from __future__ import annotations
 
@@ -28,9 +31,16 @@ def _modules(root: str = PACKAGE_DIR) -> dict[str, str]:
     return out
 
 
+def _packages_above(module: str, mods: dict[str, str]) -> set[str]:
+    """The packages whose `__init__` runs when `module` is imported: "a.b.c" -> {"a", "a.b"} (those in `mods`)."""
+    parts = module.split(".")
+    return {".".join(parts[:i]) for i in range(1, len(parts))} & set(mods)
+
+
 def import_graph(root: str = PACKAGE_DIR) -> dict[str, set[str]]:
     """{module: the package modules it imports}, from every import statement (top level and inside functions);
-    `from pkg import name` counts as importing `pkg.name` when that is a module, else `pkg`."""
+    `from pkg import name` counts as importing `pkg.name` when that is a module, else `pkg`; importing `pkg.sub`
+    counts as importing `pkg` (its `__init__`) too, unless the importer is inside `pkg`."""
     mods = _modules(root)
 
     def owner(name: str):
@@ -54,7 +64,10 @@ def import_graph(root: str = PACKAGE_DIR) -> dict[str, set[str]]:
                     base = ".".join(parts + ([base] if base else []))
                 deps.update(owner(f"{base}.{a.name}") if f"{base}.{a.name}" in mods else owner(base)
                             for a in node.names)
-        graph[mod] = {d for d in deps if d and d != mod}
+        deps = {d for d in deps if d}
+        own = _packages_above(mod, mods) | ({mod} if path.endswith("__init__.py") else set())
+        deps |= {p for d in deps for p in _packages_above(d, mods)} - own
+        graph[mod] = {d for d in deps if d != mod}
     return graph
 
 
@@ -99,6 +112,35 @@ def test_no_library_module_imports_a_command_line_module():
     bad = {m: sorted(deps & COMMAND_MODULES) for m, deps in graph.items()
            if deps & COMMAND_MODULES and m not in COMPOSING_COMMANDS}
     assert bad == {}
+
+
+def test_zoo_does_not_reach_bench_and_setup_and_configs_are_apart():
+    graph = import_graph()
+
+    def reach(start):
+        seen, todo = set(), [start]
+        while todo:
+            for d in graph.get(todo.pop(), ()):
+                if d not in seen:
+                    seen.add(d)
+                    todo.append(d)
+        return seen
+
+    assert not {m for m in reach("bridge_jax.zoo") if m.startswith("bridge_jax.bench")}
+    assert not {m for m in reach("bridge_jax.setup") if m.startswith("bridge_jax.configs")}
+
+
+def test_a_submodule_import_counts_its_package_init(tmp_path):
+    """`pkg/__init__.py` importing `pkg.b`, which imports `a`, while `a` imports `pkg.c`: a cycle at run time
+    (importing pkg.c runs pkg's __init__, which imports pkg.b, which imports a)."""
+    pkg = tmp_path / "bridge_jax"
+    (pkg / "pkg").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f():\n    from bridge_jax.pkg import c\n")
+    (pkg / "pkg" / "__init__.py").write_text("from bridge_jax.pkg.b import x\n")
+    (pkg / "pkg" / "b.py").write_text("from bridge_jax import a\nfrom bridge_jax.pkg import c\n")
+    (pkg / "pkg" / "c.py").write_text("")
+    assert cycles(import_graph(str(pkg))) == [["bridge_jax.a", "bridge_jax.pkg", "bridge_jax.pkg.b"]]
 
 
 @pytest.mark.parametrize("source, expected", [

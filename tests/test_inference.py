@@ -24,12 +24,12 @@ class ConstantPredictor(inference.Predictor):
     """Network replaced by a known working-resolution map, to test the resizing / unit conventions alone."""
 
     def __init__(self, field):
-        self.height, self.width = field.shape[:2]
+        self.size = inference.WorkingSize(*field.shape[:2])
         self.field = field
         self.separate = False
         self.seen = []
 
-    def run_network(self, pairs, is_stereo=False):
+    def run_network(self, pairs, tasks="flow"):
         self.seen.append(pairs)
         return np.broadcast_to(self.field, (len(pairs),) + self.field.shape).astype(np.float32)
 
@@ -118,8 +118,8 @@ def test_predict_cycle_consistent_with_pairs(predictor, rng):
     imgs = [rng.integers(0, 256, size=(70, 150, 3), dtype=np.uint8) for _ in range(4)]
     out = predictor.predict_cycle(*imgs)
     assert out["disp_t"].shape == (70, 150) and out["flow"].shape == (70, 150, 2)
-    work = [predictor.run_network(predictor.prepare([a], [b])[0], stereo)[0]
-            for a, b, stereo in ((imgs[0], imgs[1], True), (imgs[2], imgs[3], True), (imgs[0], imgs[2], False))]
+    work = [predictor.run_network(predictor.prepare([a], [b])[0], task)[0]
+            for a, b, task in ((imgs[0], imgs[1], "stereo"), (imgs[2], imgs[3], "stereo"), (imgs[0], imgs[2], "flow"))]
     np.testing.assert_allclose(out["disp_t"], inference.disparity_to_input_resolution(-work[0][..., 0], 70, 150),
                                atol=1e-5)
     np.testing.assert_allclose(out["disp_t1"], inference.disparity_to_input_resolution(-work[1][..., 0], 70, 150),

@@ -1,8 +1,8 @@
 """Parity of geometry + losses with the upstream PyTorch code, on the upstream fixture.
 
-The fixture (seeded inputs, maps, warps, masks, every loss term of upstream's train step) is found as described in
-tests/fixture.py: `../shared/peer/fixture/` beside the repository by default, BRIDGE_FIXTURE_DIR to override; CI
-fails when it is missing.
+The fixture (seeded inputs, maps, warps, masks, every loss term of upstream's train step) is the one the repository
+ships in tests/data/parity/ (a small size, always run), and the harness's full one where it exists (an extra
+check; tests/fixture.py says where).
 
 Upstream stores NCHW arrays of 8 rows = 4 pairs x 2 cycles (pair-major); bridge_jax is NHWC with
 8 rows per cycle (forward pairs 0..3, then backward pairs 0..3).
@@ -15,14 +15,14 @@ import pytest
 
 from bridge_jax import cycle as cyc
 from bridge_jax import geometry, losses
-from tests.fixture import fixture_file
+from tests.fixture import reference_file, reference_files
 
 RTOL = 1e-5
 
 
-@pytest.fixture(scope="module")
-def ref():
-    return dict(np.load(fixture_file("reference.npz")))
+@pytest.fixture(scope="module", params=sorted(reference_files()))
+def ref(request):
+    return dict(np.load(reference_file(request.param)))
 
 
 def nhwc(x):
@@ -64,7 +64,7 @@ def close(a, b, rtol=RTOL, atol=1e-7):
 
 
 def test_warp_matches_upstream_resample2d(ref):
-    """float64 warp + both gradients vs the fixture's float64 Resample2d (8.8 % clamped points)."""
+    """float64 warp + both gradients vs the fixture's float64 Resample2d (with clamped points)."""
     with jax.enable_x64(True):
         img = jnp.asarray(nhwc(ref["warp_img"]), jnp.float64)
         disp = jnp.asarray(nhwc(ref["warp_disp"]), jnp.float64)
@@ -106,7 +106,7 @@ def test_masks_and_reconstructions_match_upstream(ref, s):
 
 
 def test_every_loss_term_matches_upstream(ref):
-    """syn case: stored maps with 13-26 % occluded flow pixels, 2 different cycles, type 0 and type 2."""
+    """syn case: stored maps with occluded flow pixels, 2 different cycles, type 0 and type 2."""
     prefix = "syn_"
     maps = fixture_maps(ref, "syn_")
     cycles = jnp.asarray(np.stack([nhwc(ref[k]) for k in ("L_t", "R_t", "L_t1", "R_t1")], axis=1))
@@ -131,8 +131,13 @@ def test_every_loss_term_matches_upstream(ref):
 
 
 @pytest.mark.parametrize("s", range(4))
-@pytest.mark.parametrize("prefix", ["syn_", "net_"])
-def test_two_warp_masks_estimates_and_terms_match_upstream(ref, prefix, s):
+def test_two_warp_masks_estimates_and_terms_match_upstream(ref, s):
+    for prefix in ("syn_", "net_"):  # stored maps; the seeded upstream network's maps (the full fixture only)
+        if f"{prefix}fwd_px_{s}" in ref:
+            _check_two_warp(ref, prefix, s)
+
+
+def _check_two_warp(ref, prefix, s):
     """Type-2 (full-2) through what trains, from the fixture's maps, 1-warp reconstructions and occlusion masks of
     both cycles: `two_warp_chains`, `two_warp_estimates` (eqs. 10-11: the warped masks and 2-warp estimates), and
     eq. 12 as `scale_terms` computes it (the photometric term on their stacked rows, `per_row`, one `group_mean`

@@ -71,18 +71,18 @@ def test_polish_recovers_a_sub_pixel_translation(stereo):
     swapped component or a missing step would show at once."""
     u, v = (-1.4, 0.0) if stereo else (0.6, -0.3)
     pairs = jnp.asarray(_translated_pair(u, v))
-    keep_vertical = jnp.asarray([0.0 if stereo else 1.0])
-    out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), keep_vertical))[0]
+    flow_rows = jnp.asarray([0.0 if stereo else 1.0])
+    out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), flow_rows))[0]
     err = np.abs(out[10:-10, 10:-10] - np.float32([u, v]))
     assert err.mean() < (0.01 if stereo else 0.04) and err.max() < (0.05 if stereo else 0.15), (err.mean(), err.max())
     if stereo:
         assert np.all(out[..., 1] == 0.0)
 
 
-def _refine(pairs, maps, keep_vertical=(1.0,)):
+def _refine(pairs, maps, flow_rows=(1.0,)):
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
-    return np.asarray(polish.variational_refinement(polish.normalise_locally(grey_a), grey_a, grey_b,
-                                                    jnp.asarray(maps), jnp.asarray(keep_vertical)))[0]
+    return np.asarray(polish.variational_fit(polish.normalise_locally(grey_a), grey_a, grey_b,
+                                             jnp.asarray(maps), jnp.asarray(flow_rows)))[0]
 
 
 def test_matches_near_and_beyond_the_border_of_b():
@@ -161,7 +161,7 @@ def test_candidate_selection_repairs_a_bled_motion_boundary(rng):
     assert polish.candidate_offsets().shape == (32, 2)
 
 
-def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng, monkeypatch):
+def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng):
     """The whole polish on the bled boundary: above the square the background's motion comes back and stays
     within a few hundredths of a pixel of it up to 2 px from the square's edge, where the robust smoothness
     weight lets the map jump. With a quadratic smoothness term (a huge epsilon) the two motions are averaged
@@ -170,14 +170,13 @@ def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng, monkeypatch):
     pairs = jnp.asarray(np.concatenate([np.repeat(a[..., None], 3, -1), np.repeat(b[..., None], 3, -1)], -1)[None])
     band = (slice(y0 - 6, y0 - 2), slice(x0 + 4, x1 - 4))
 
-    def err_above():
-        out = np.asarray(polish.polish_maps(pairs, jnp.asarray(maps)[None], jnp.ones(1)))[0]
+    def err_above(config=polish.PolishConfig()):
+        out = np.asarray(polish.polish_maps(pairs, jnp.asarray(maps)[None], jnp.ones(1), config))[0]
         return np.abs(out[band] - np.float32([3.0, 0.0])).mean()
 
     robust = err_above()
     assert robust < 0.05, robust
-    monkeypatch.setattr(polish, "SMOOTH_EPS", 1e3)
-    assert err_above() > 4 * robust
+    assert err_above(polish.PolishConfig(smooth_eps=1e3)) > 4 * robust
 
 
 def test_unknown_polish_is_one_clear_error():
@@ -198,7 +197,7 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     pairs = rng.uniform(size=(2, 64, 128, 6)).astype(np.float32)
     plain = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1)
     polished = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric")
-    rows = [False, True]
+    rows = ["flow", "stereo"]
     want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
     got = polished.run_network(pairs, rows)
     # 200 SOR sweeps with robust weights on random images carry float reassociation between the fused and the
@@ -209,6 +208,9 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     assert np.all(got[1, ..., 1] == 0.0)  # the stereo row stays horizontal
     polished.run_network(pairs, rows)
     assert polished.trace_count == 1
+    # the polish's config keys its program: another config, another polish, the same network program
+    polished.polish_config = polish.PolishConfig(smooth_eps=1e3)
+    assert np.abs(polished.run_network(pairs, rows) - got).max() > 1e-3 and polished.trace_count == 1
     # "fast" compiles the network at optimisation level 0 and the polish, a program of its own, in full
     fast = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric",
                                compile_mode="fast")
@@ -226,12 +228,12 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
 def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
     for name in ("long", "demo"):
         want = zoo.info(name).get("default_polish", "none")
-        assert zoo.default_polish(name) == want
+        assert zoo.card_test_time(name).polish == want
         assert inference.load_predictor(name).polish == want
     assert inference.load_predictor("long", polish="none").polish == "none"
     for name in ("long", "demo"):  # `bridge-zoo show` says so, for both shipped cards (both recommend it)
         assert any(line.startswith("  default polish: photometric") for line in zoo.card_lines(name)), name
-    assert zoo.default_polish(str(tmp_path)) == "none" and zoo.default_polish("no-such-name") == "none"
+    assert zoo.card_test_time(str(tmp_path)).polish == zoo.card_test_time("no-such-name").polish == "none"
 
 
 def test_predict_polish_option(tiny_checkpoint, tmp_path, capsys):

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bridge_jax import flowio, inference, predict
+from bridge_jax import flowio, inference, predict, resizing
 from bridge_jax.eval import datasets, methods
 
 H, W = 100, 200          # input resolution, deliberately not the working size (128×256)
@@ -80,7 +80,7 @@ def test_stereo_pair_with_depth(predictor, frames, tmp_path):
     from bridge_jax.data import kitti
     a, b = _write(tmp_path / "a.png", frames[0]), _write(tmp_path / "b.png", frames[1])
     out2 = tmp_path / "out2"
-    src = predict.open_inputs([a, b], pair_kind="stereo")
+    src = predict.open_inputs([a, b], task="stereo")
     desc = predict.predict_source(predictor, src, str(out2), focal=100.0, baseline=0.5, progress=False,
                                   raw=("png", "npy", "pfm", "flo"))
     _decodable(out2 / "disparity" / "a.png")
@@ -342,12 +342,12 @@ def test_block_wise_writing_matches_whole_maps(monkeypatch):
     rng = np.random.default_rng(2)
     flow = rng.normal(0, 5, (37, 23, 2)).astype(np.float32)
     whole = predict.visualize.flow_to_color(flow, max_flow=7.0)
-    monkeypatch.setattr(inference, "ROW_BLOCK_PIXELS", 50)  # blocks of 2 rows
+    monkeypatch.setattr(resizing, "ROW_BLOCK_PIXELS", 50)  # blocks of 2 rows
     np.testing.assert_array_equal(predict._by_rows(lambda f: predict.visualize.flow_to_color(f, max_flow=7.0),
                                                    flow), whole)
     small = rng.normal(0, 3, (5, 7, 2)).astype(np.float32)
     np.testing.assert_allclose(inference.flow_to_input_resolution(small, 37, 23),
-                               inference._resize(small, inference.resize_weights_align_corners(5, 37),
+                               resizing._resize(small, inference.resize_weights_align_corners(5, 37),
                                                  inference.resize_weights_align_corners(7, 23))
                                * np.array([23 / 7, 37 / 5], np.float32), rtol=1e-6)
 

@@ -97,7 +97,7 @@ def test_predictor_refine_matches_a_numpy_pass_over_its_own_calls(network, rng):
     wb = np_warp(b, d0)
     r = plain.run_network(np.concatenate([a, wb], -1)[None])[0]
     want = r + np_warp(d0, r)
-    got = np.asarray(inference.refine_maps(lambda x: plain.forward(x, [False] * len(x)), jnp.asarray(pairs),
+    got = np.asarray(inference.refine_maps(lambda x: plain.forward(x, ["flow"] * len(x)), jnp.asarray(pairs),
                                            jnp.asarray(d0[None]), jnp.ones(1), passes=1))[0]
     np.testing.assert_allclose(got, want, atol=2e-4)
     # the predictor's own refined call: its first estimate is its own d0
@@ -107,7 +107,7 @@ def test_predictor_refine_matches_a_numpy_pass_over_its_own_calls(network, rng):
     n = refined.trace_count
     refined.run_network(pairs)
     assert refined.trace_count == n == 1
-    refined.refine = 2  # another pass count: one more compile
+    refined.test_time = inference.TestTime(refine=2)  # another pass count: one more compile
     refined.run_network(pairs)
     assert refined.trace_count == 2
 

@@ -1,4 +1,4 @@
-"""Test-time symmetry averaging (`inference.symmetric_estimate`, `Predictor(symmetry=)`, `--symmetry`): the map
+"""Test-time symmetry averaging (`inference.symmetric_maps`, `Predictor(symmetry=)`, `--symmetry`): the map
 transforms on hand-built cases (an exact translation matcher, a constant stand-in network), and the predictor
 and the exported artifact against numpy averages over their own plain calls on flipped copies."""
 
@@ -28,8 +28,8 @@ def test_an_exact_matcher_stays_exact_under_every_copy(rng, symmetry):
     left-right flip, v of an upside-down flip) or unswapped channels (a transposition) would pull the mean
     off it (u to 1.5 with one wrong sign among four copies)."""
     pairs = _shifted_pair(rng, 3, -2)
-    for keep_vertical in (None, jnp.ones(1), jnp.zeros(1)):
-        out = np.asarray(inference.symmetric_estimate(shift_matcher(), pairs, symmetry, keep_vertical))
+    for flow_rows in (None, jnp.ones(1), jnp.zeros(1)):
+        out = np.asarray(inference.symmetric_maps(shift_matcher(), pairs, symmetry, flow_rows))
         np.testing.assert_allclose(out, np.broadcast_to([3.0, -2.0], (1, H, W, 2)), atol=1e-6)
 
 
@@ -40,9 +40,9 @@ def test_copies_are_mapped_back_and_stereo_rows_keep_stereo_copies():
     with "flips" and with "dihedral"."""
     estimate = lambda x: jnp.broadcast_to(jnp.asarray([1.0, 2.0]), x.shape[:3] + (2,))
     pairs = jnp.zeros((2, H, W, 6))
-    keep_vertical = jnp.asarray([1.0, 0.0])  # row 0 flow, row 1 stereo
+    flow_rows = jnp.asarray([1.0, 0.0])  # row 0 flow, row 1 stereo
     for symmetry in ("flips", "dihedral"):
-        out = np.asarray(inference.symmetric_estimate(estimate, pairs, symmetry, keep_vertical))
+        out = np.asarray(inference.symmetric_maps(estimate, pairs, symmetry, flow_rows))
         np.testing.assert_allclose(out[0], np.zeros((H, W, 2)), atol=1e-6)
         np.testing.assert_allclose(out[1], np.broadcast_to([1.0, 0.0], (H, W, 2)), atol=1e-6)
 
@@ -66,7 +66,7 @@ def _numpy_symmetric(plain: inference.Predictor, pairs: np.ndarray, stereo: bool
                 x = pairs.transpose(0, 2, 1, 3) if t else pairs
                 x = x[:, :, ::-1] if lr else x
                 x = x[:, ::-1] if ud else x
-                m = plain.run_network(np.ascontiguousarray(x), stereo)
+                m = plain.run_network(np.ascontiguousarray(x), "stereo" if stereo else "flow")
                 m = m[:, ::-1] if ud else m
                 m = m[:, :, ::-1] if lr else m
                 m = m * np.array([-1.0 if lr else 1.0, -1.0 if ud else 1.0], np.float32)
@@ -90,13 +90,13 @@ def test_predictor_symmetry_is_the_mean_of_its_plain_calls_on_flipped_copies(pwc
     pairs = rng.uniform(size=(2, H, W, 6)).astype(np.float32)
     for symmetry in ("flips", "dihedral"):
         sym = inference.Predictor(*pwc, height=H, width=W, model_cfg=cfg, symmetry=symmetry)
-        got = sym.run_network(pairs, [False, True])
+        got = sym.run_network(pairs, ["flow", "stereo"])
         np.testing.assert_allclose(got[0], _numpy_symmetric(plain, pairs[:1], False, symmetry == "dihedral")[0],
                                    atol=2e-5)
         np.testing.assert_allclose(got[1], _numpy_symmetric(plain, pairs[1:], True, symmetry == "dihedral")[0],
                                    atol=2e-5)
         assert np.abs(got[0] - plain.run_network(pairs[:1])[0]).max() > 1e-4  # the copies changed the map
-        sym.run_network(pairs, [True, False])
+        sym.run_network(pairs, ["stereo", "flow"])
         assert sym.trace_count == 1
 
 
@@ -116,13 +116,13 @@ def test_default_symmetry_comes_from_a_shipped_card_only(tmp_path):
     checkpoint path (no card) runs without."""
     for name in ("long", "demo"):
         want = zoo.info(name).get("default_symmetry", "none")
-        assert zoo.default_symmetry(name) == want
+        assert zoo.card_test_time(name).symmetry == want
         assert inference.load_predictor(name).symmetry == want
     assert inference.load_predictor("long", symmetry="none").symmetry == "none"
-    assert zoo.default_symmetry("long") == "flips"  # what its real-image checks chose (real_images.md)
+    assert zoo.card_test_time("long").symmetry == "flips"  # what its real-image checks chose (real_images.md)
     assert any(line.startswith("  default symmetry averaging: flips") for line in zoo.card_lines("long"))
     assert not any("symmetry" in line for line in zoo.card_lines("demo"))
-    assert zoo.default_symmetry(str(tmp_path)) == "none" and zoo.default_symmetry("no-such-name") == "none"
+    assert zoo.card_test_time(str(tmp_path)) == zoo.card_test_time("no-such-name") == inference.TestTime()
 
 
 def predict_pair_command(checkpoint: str, tmp_path):

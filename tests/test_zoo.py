@@ -112,10 +112,10 @@ def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
     otherwise; a checkpoint path (no card) runs unrefined."""
     for name in ("long", "demo"):
         meta = zoo.info(name)
-        assert zoo.default_refine(name) == meta["default_refine"] >= 1
+        assert zoo.card_test_time(name).refine == meta["default_refine"] >= 1
         assert inference.load_predictor(name).refine == meta["default_refine"]
     assert inference.load_predictor("long", refine=0).refine == 0
-    assert zoo.default_refine(str(tmp_path)) == 0 and zoo.default_refine("no-such-name") == 0
+    assert zoo.card_test_time(str(tmp_path)).refine == zoo.card_test_time("no-such-name").refine == 0
 
 
 def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
@@ -123,7 +123,7 @@ def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
     unless told otherwise; a model without a card entry has none."""
     for name in ("long", "demo"):
         want = zoo.info(name)["default_working_size"]
-        got = zoo.default_working_size(name)
+        got = zoo.card_working_size(name)
         p = inference.load_predictor(name)
         if want in ("native", "trained"):
             assert got == want and p.native == (want == "native")
@@ -133,7 +133,7 @@ def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
     info = dict(zoo.info("demo"))
     for card, size in (("192x384", (192, 384)), ("256X512", (256, 512)), ("native", "native"), (None, None)):
         monkeypatch.setattr(zoo, "_shipped_info", lambda spec, card=card: {**info, "default_working_size": card})
-        assert zoo.default_working_size("demo") == size
+        assert zoo.card_working_size("demo") == size
     monkeypatch.setattr(zoo, "_shipped_info", lambda spec: {**info, "default_working_size": "192x384"})
     p = inference.load_predictor("demo")
     assert (p.height, p.width) == (192, 384)

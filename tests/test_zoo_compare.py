@@ -157,9 +157,9 @@ def zero_motion_checkpoint(monkeypatch):
 def test_compare_runs_the_checkpoint_at_the_cards_settings(zero_motion_checkpoint):
     card = json.loads((zoo.ZOO_DIR / "demo.json").read_text())
     result = real_checks.compare_with_card("demo", "work/x", limit=1)
-    assert [(c["path"], c["working_size"], c["refine"], c["symmetry"], c["polish"])
-            for c in zero_motion_checkpoint] == [("work/x", (192, 384), 1, "none", "photometric"),
-                                                 ("work/x", (192, 384), 1, "none", "none")]
+    assert [(c["path"], c["size"], c["test_time"]) for c in zero_motion_checkpoint] == [
+        ("work/x", (192, 384), inference.TestTime(1, "none", "photometric")),
+        ("work/x", (192, 384), inference.TestTime(1, "none", "none"))]
     checks = ["motorcycle", "homography", "heldout_synthetic"]
     assert list(result["runs"]["photometric"]["numbers"]) == checks
     for check in checks:
@@ -179,8 +179,8 @@ def test_compare_runs_the_checkpoint_at_the_cards_settings(zero_motion_checkpoin
 def test_compare_command_prints_the_table_and_writes_json(zero_motion_checkpoint, tmp_path, capsys):
     out = tmp_path / "compare.json"
     assert main(["compare", "long", str(tmp_path), "--polish", "card", "--limit", "1", "--json", str(out)]) == 0
-    assert [c["polish"] for c in zero_motion_checkpoint] == ["photometric"]
-    assert zero_motion_checkpoint[0]["working_size"] == "native" and zero_motion_checkpoint[0]["symmetry"] == "flips"
+    assert [c["test_time"].polish for c in zero_motion_checkpoint] == ["photometric"]
+    assert zero_motion_checkpoint[0]["size"] == "native" and zero_motion_checkpoint[0]["test_time"].symmetry == "flips"
     text = capsys.readouterr().out
     assert "long's card" in text and "working size native, refine 1, symmetry flips, polish photometric" in text
     assert "--limit" in text  # says the numbers are over fewer inputs than the card's

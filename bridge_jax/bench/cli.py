@@ -64,7 +64,7 @@ import tempfile
 
 import jax
 
-from bridge_jax import cli, configs, inference, recipe
+from bridge_jax import cli, configs, inference, recipe, testtime
 from bridge_jax.bench import first, measure
 from bridge_jax.bench.device import device_peak
 from bridge_jax.bench.peer import PEER_DIR_ENV, PEER_PYTHON_ENV, run_peer
@@ -147,9 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", default="demo", help="first_prediction: the model (a shipped name or a folder)")
     p.add_argument("--working-size", default=None, metavar="HxW|native|trained",
                    help="first_prediction: bridge_jax.predict's --working-size (default: the model's own choice)")
-    p.add_argument("--symmetry", default=None, choices=inference.SYMMETRY_MODES,
+    p.add_argument("--symmetry", default=None, choices=testtime.SYMMETRY_MODES,
                    help="first_prediction: bridge_jax.predict's --symmetry (default: the model's own choice)")
-    p.add_argument("--polish", default=None, choices=inference.POLISH_MODES,
+    p.add_argument("--polish", default=None, choices=testtime.POLISH_MODES,
                    help="first_prediction: bridge_jax.predict's --polish (default: the model's own choice)")
     return p
 

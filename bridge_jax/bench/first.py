@@ -1,6 +1,6 @@
 """Time to a first answer: the wall time of a fresh process, as a new user starts it.
 
-  first_prediction  `python -m bridge_jax.predict --checkpoint NAME --pair-kind flow a.png b.png --out OUT` on a
+  first_prediction  `python -m bridge_jax.predict --checkpoint NAME --task flow a.png b.png --out OUT` on a
                     512x256 photo pair (scikit-image's stereo_motorcycle, resized: the same pixels every time)
   first_step        `python -m bridge_jax.train --config=NAME --config.height=H --config.width=W --workdir WD`
                     for a few steps (no validation, no pictures, no checkpoint before the one at the end); also
@@ -151,7 +151,7 @@ def write_photo_pair(folder: str, height: int = PAIR_SIZE[0], width: int = PAIR_
 
 def predict_command(a: str, b: str, out: str, checkpoint: str, working_size: str | None = None,
                     symmetry: str | None = None, polish: str | None = None) -> list[str]:
-    cmd = [sys.executable, "-m", "bridge_jax.predict", "--checkpoint", checkpoint, "--pair-kind", "flow", a, b,
+    cmd = [sys.executable, "-m", "bridge_jax.predict", "--checkpoint", checkpoint, "--task", "flow", a, b,
            "--out", out]
     return (cmd + (["--working-size", working_size] if working_size else [])
             + (["--symmetry", symmetry] if symmetry else []) + (["--polish", polish] if polish else []))

@@ -180,7 +180,8 @@ def measure_inference(config, args) -> dict:
     graphdef, params = _init_params(run)
     if run.model.separate:
         params = params["stereo"]
-    predictor = inference.Predictor(graphdef, params, height=run.height, width=run.width, dtype=run.model.dtype,
+    predictor = inference.Predictor(graphdef, params, size=inference.WorkingSize(run.height, run.width),
+                                    dtype=run.model.dtype,
                                     model_cfg=run.model.config)
     pairs = int(args.pairs)
     x = jax.device_put(np.random.default_rng(0).random((pairs, run.height, run.width, 6), dtype=np.float32))
@@ -190,8 +191,8 @@ def measure_inference(config, args) -> dict:
     flops = cost_flops(compiled.cost_analysis())
     mem = compiled.memory_analysis()
     del compiled
-    rows = (False,) * pairs
-    timing = time_calls(lambda i: predictor.forward(x, rows), repeats=args.repeats, warmup=args.warmup)
+    tasks = ("flow",) * pairs
+    timing = time_calls(lambda i: predictor.forward(x, tasks), repeats=args.repeats, warmup=args.warmup)
     rec = dict(what="inference", variant=f"batch={pairs}", model=run.model.config["name"], pairs_per_call=pairs,
                compile_s=round(compile_s, 3), flops=flops, flops_executed=flops,
                flops_source="compiled forward cost_analysis",

@@ -8,7 +8,6 @@ count means the function recompiled (a shape changed), which the record says and
 from __future__ import annotations
 
 import os
-import platform
 import resource
 import statistics
 import threading
@@ -18,7 +17,7 @@ from typing import Any, Callable
 import jax
 
 from bridge_jax import compile_cache
-from bridge_jax.models import layers
+from bridge_jax.host import cpu_isa, cpu_model, machine  # noqa: F401 - re-exported for the records
 
 
 class BenchError(Exception):
@@ -94,29 +93,6 @@ class HostMonitor:
             busy = (j1 - self._j0) / os.sysconf("SC_CLK_TCK")
             self.other_cpu_frac = max(0.0, (busy - own) / (wall * (os.cpu_count() or 1)))
         return False
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def cpu_isa() -> str | None:
-    """The widest x86 vector ISA the CPU reports ("AVX-512", "AVX2" or "older"; None off Linux/x86): these
-    VMs come as both kinds, and XLA:CPU's convolutions (and so every ratio to PyTorch) differ between them."""
-    return layers.cpu_vector_isa()
-
-
-def machine() -> str:
-    """One line naming this machine for results: "<cores>-core <CPU model> (<ISA>)"."""
-    isa = cpu_isa()
-    return f"{os.cpu_count()}-core {cpu_model()}" + (f" ({isa})" if isa else "")
 
 
 def loadavg() -> list[float] | None:

@@ -69,9 +69,8 @@ def base_config(opts=()):
         c.model = default.model_section("pwc_lite")  # zero output heads by default
     # 64x128: the loss, not the small network, dominates a step, so 4x fewer pixels than 128x256 buy 4x the steps.
     c.height, c.width = 64, 128
-    # One cycle (8 pair-forwards) per step: 2,500 steps of it reach the same flow error as about 1,500 steps of two
-    # cycles, in half the compute of the 2,500 two-cycle steps used before (the demo recipe rows of
-    # experiments/results/perf.md, 2026-12-02), which is what fits the demo in ~12 minutes on 2 cores.
+    # One cycle (8 pair-forwards) per step: it reaches the flow error of fewer two-cycle steps in less compute,
+    # which is what fits the demo in ~12 minutes on 2 cores.
     c.global_batch = 1
     c.micro_batch = 0  # a small model: one jitted step beats many small calls
     c.lr = 1e-3

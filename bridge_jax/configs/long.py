@@ -13,7 +13,7 @@ Stages (`STAGES`; each starts from the previous stage's final params with fresh 
    varied rigs, per-camera photometric differences, vertical motion): 9,000 steps at 64x128, one cycle per
    step, lr 1e-3 halving every 2,250 steps from step 3,000. At a quarter of the pixels of 128x256 a step costs
    about a quarter, and this is where most of the learning happens: of the splits measured, the one with the
-   longest 64x128 stage scored best on every real-image check (experiments/results/long_recipe.md).
+   longest 64x128 stage scored best on every real-image check.
 2. `main`: 1,000 steps at 128x256 with the census photometric term (robust to the exposure and gain differences between real
    cameras), the self-supervision term (full-frame maps teach the maps of crops) and frames t+1 cut up to 8 % of
    the height away from t (vertical motion at the frame level).

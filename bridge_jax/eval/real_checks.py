@@ -24,11 +24,12 @@ image_b)`` of uint8 RGB ``(H, W, 3)`` images, task ``"stereo"`` -> ``(H, W)`` di
     numbers, first = real_checks.score(predictor, "homography", data)
 
 `compare_with_card` scores a checkpoint on the checks of a shipped model's card, at the card's test-time
-settings, beside the card's numbers (`bridge-zoo compare NAME WORKDIR`); experiments/real_images.py runs every
-check for several models and OpenCV and writes the tables, pictures and card entries.
+settings, beside the card's numbers (`bridge-zoo compare NAME WORKDIR`). The card entries themselves come from
+running every check for several models and OpenCV (`score`), outside the package.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -40,6 +41,7 @@ import numpy as np
 from bridge_jax import metrics
 from bridge_jax.data import photos
 from bridge_jax.eval.datasets import Frame, synthetic_frames
+from bridge_jax.testtime import TestTime
 
 HOMOGRAPHY_SEED = 20261202
 HELDOUT_SYNTHETIC_SEED = 2_000_003  # disjoint from training (seed 0) and the validation seed (1,000,003)
@@ -398,7 +400,7 @@ def score(method, check: str, data: Any) -> tuple[dict, np.ndarray]:
 
 CARD_KEY = "real_images"
 """The card entry with the real-image numbers at the card's test-time settings: {check: {size: {metric: value}}}
-("size" as experiments/real_images.py --sizes named it, plus "opencv")."""
+("size" as the card names it, e.g. "native" or "192x384", plus "opencv")."""
 CARD_KEY_POLISH_NONE = "real_images_polish_none"
 """The card entry, when a card has one, with the same numbers measured without the test-time polish."""
 POLISH_CHOICES = ("card", "none", "both")
@@ -409,11 +411,9 @@ MISSING = "–"
 def card_settings(card: dict) -> dict:
     """The test-time settings a shipped model's card (`zoo.info`) recommends and measured its real-image
     numbers at: {"working_size": "native" | "trained" | "HxW" (as the card names it), "refine": int,
-    "symmetry": str, "polish": str}."""
+    "symmetry": str, "polish": str} (`TestTime.from_card`)."""
     return {"working_size": str(card.get("default_working_size") or "trained"),
-            "refine": int(card.get("default_refine") or 0),
-            "symmetry": str(card.get("default_symmetry") or "none"),
-            "polish": str(card.get("default_polish") or "none")}
+            **TestTime.from_card(card).to_dict()}
 
 
 def card_numbers(card: dict, polish: str) -> Optional[dict]:
@@ -540,9 +540,10 @@ def compare_with_card(name: str, checkpoint: str | os.PathLike, *, polish: str =
     size = settings["working_size"]
     working_size = (int(card["height"]), int(card["width"])) if size == "trained" else cli.parse_working_size(size)
     # every predictor loads (and so every path is checked) before the minutes of scoring start
-    predictors = {q: inference.load_predictor(checkpoint, working_size=working_size, refine=settings["refine"],
-                                              symmetry=settings["symmetry"], polish=q,
-                                              size_option=f"{name}'s working size {size}")
+    test_time = TestTime(settings["refine"], settings["symmetry"])
+    predictors = {q: inference.load_predictor(checkpoint, size=working_size,
+                                              size_option=f"{name}'s working size {size}",
+                                              test_time=dataclasses.replace(test_time, polish=q))
                   for q in polishes}
     data = {check: build(check, limit=limit) for check in reference}
     runs = {}

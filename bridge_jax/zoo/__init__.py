@@ -33,6 +33,7 @@ from typing import Any, Optional
 import numpy as np
 
 from bridge_jax import cli
+from bridge_jax.testtime import TestTime
 
 HOME_ENV = "BRIDGE_JAX_HOME"
 ZOO_DIR = Path(__file__).resolve().parent
@@ -65,7 +66,7 @@ _ENTRIES: dict[str, Entry] = {
                   "stereo video (the `demo` recipe: 1,750 steps at 64x128, then its `finish` stage: 300 steps at "
                   "128x256); a starting point, not a KITTI model; by default at 192x384 with one "
                   "--refine pass and --polish photometric"),
-    "long": Entry("long", "shipped", "pwc_lite fine-tuned from the one-phase `demo` shipped before 2026-12-03, "
+    "long": Entry("long", "shipped", "pwc_lite fine-tuned from an earlier, one-phase `demo` model, "
                   "at 128x256, then 256x512, on the synthetic "
                   "scenes that carry over to real images (photo textures, slanted and rotating objects, varied rigs, "
                   "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
@@ -269,45 +270,31 @@ def card_lineage(spec: str | os.PathLike) -> list[str]:
 
 
 def defaults_source(spec: str | os.PathLike) -> Optional[str]:
-    """The shipped model whose card gives `spec`'s default test-time settings (`default_working_size`,
-    `default_refine`, `default_symmetry`, `default_polish`): `spec` itself when it names one, the one a
-    checkpoint was fine-tuned from (`card_lineage`), else None (the plain defaults)."""
+    """The shipped model whose card gives `spec`'s default test-time settings (`card_working_size`,
+    `card_test_time`): `spec` itself when it names one, the one a checkpoint was fine-tuned from
+    (`card_lineage`), else None (the plain defaults)."""
     chain = card_lineage(spec)
     return chain[-1] if chain else None
 
 
-def _card_value(spec: str | os.PathLike, key: str, fallback: Any) -> Any:
-    """Card entry `key` of the shipped model `spec` is or descends from (`defaults_source`), or `fallback` (no
-    such entry, or no shipped model in its lineage)."""
+def _card(spec: str | os.PathLike) -> dict:
+    """The card of the shipped model `spec` is or descends from (`defaults_source`), or {} (none)."""
     source = defaults_source(spec)
-    meta = None if source is None else _shipped_info(source)
-    return fallback if meta is None else meta.get(key, fallback)
+    return (None if source is None else _shipped_info(source)) or {}
 
 
-def default_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]]:
+def card_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]]:
     """The working size the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
     recommends, chosen by its real-image checks: "native", "trained" or a fixed (H, W) (the card's "HxW"); None
     (no card entry, or no shipped model in its lineage)."""
-    value = _card_value(spec, "default_working_size", None)
+    value = _card(spec).get("default_working_size")
     return None if value is None else cli.parse_working_size(value)
 
 
-def default_refine(spec: str | os.PathLike) -> int:
-    """The test-time refinement passes the card of the shipped model `spec` is or was fine-tuned from
-    recommends (`inference.refine_maps`; chosen by its real-image checks), or 0."""
-    return int(_card_value(spec, "default_refine", 0))
-
-
-def default_symmetry(spec: str | os.PathLike) -> str:
-    """The test-time symmetry averaging the card of the shipped model `spec` is or was fine-tuned from
-    recommends (`inference.symmetric_estimate`; chosen by its real-image checks), or "none"."""
-    return str(_card_value(spec, "default_symmetry", "none"))
-
-
-def default_polish(spec: str | os.PathLike) -> str:
-    """The test-time polish the card of the shipped model `spec` is or was fine-tuned from recommends
-    (`bridge_jax.polish`; chosen by its real-image checks), or "none"."""
-    return str(_card_value(spec, "default_polish", "none"))
+def card_test_time(spec: str | os.PathLike) -> TestTime:
+    """The test-time stages the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
+    recommends, chosen by its real-image checks (`TestTime.from_card`); `TestTime()` without such a card."""
+    return TestTime.from_card(_card(spec))
 
 
 def resolve_path(spec: str | os.PathLike) -> str:
@@ -386,7 +373,7 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
     config changes, retrain with `make demo` and run `bridge-zoo build demo --from
     work/demo/train`). The json records the run's config so a test notices when the config moved on, and its
     card: the training time (`training_summary`) on `machine` (default: this one), plus the entries of `card`
-    (e.g. {"real_images": numbers of experiments/real_images.py}) that `bridge-zoo show` prints.
+    (e.g. {"real_images": the numbers of its real-image checks}) that `bridge-zoo show` prints.
     `earlier_stages`: (config, workdir) of the runs this one was initialised from, oldest first
     (`stage_summary`); `after_shipped`: (config, name) of a shipped model those runs (or this one) continued,
     whose own stages come first (`shipped_stages`, read before its files are overwritten)."""
@@ -441,8 +428,8 @@ def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) ->
 
 
 def _this_machine() -> str:
-    from bridge_jax.bench import timing
-    return timing.machine()
+    from bridge_jax import host
+    return host.machine()
 
 
 def card_lines(name: str) -> list[str]:
@@ -479,14 +466,15 @@ def card_lines(name: str) -> list[str]:
     if meta.get("default_working_size"):
         lines.append(f"  default working size: {meta['default_working_size']} (the size that beat each other size "
                      "measured on more of its real-image checks; --working-size overrides it)")
-    if meta.get("default_refine"):
-        lines.append(f"  default refinement: {meta['default_refine']} pass(es) (chosen by its real-image checks, whose "
+    chosen = TestTime.from_card(meta)
+    if chosen.refine:
+        lines.append(f"  default refinement: {chosen.refine} pass(es) (chosen by its real-image checks, whose "
                      "numbers below are with it; --refine overrides it)")
-    if meta.get("default_symmetry", "none") != "none":
-        lines.append(f"  default symmetry averaging: {meta['default_symmetry']} (chosen by its real-image checks, "
+    if chosen.symmetry != "none":
+        lines.append(f"  default symmetry averaging: {chosen.symmetry} (chosen by its real-image checks, "
                      "whose numbers below are with it; --symmetry overrides it)")
-    if meta.get("default_polish", "none") != "none":
-        lines.append(f"  default polish: {meta['default_polish']} (chosen by its real-image checks, whose numbers "
+    if chosen.polish != "none":
+        lines.append(f"  default polish: {chosen.polish} (chosen by its real-image checks, whose numbers "
                      "below are with it; --polish overrides it)")
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():

@@ -39,8 +39,8 @@ def build_parser():
     b.add_argument("name", help="registry name of a shipped model (e.g. demo)")
     b.add_argument("--from", dest="workdir", required=True, help="finished training workdir to take the params of")
     b.add_argument("--card", default=None,
-                   help="a JSON file whose entries join the model's card, e.g. {\"real_images\": {...}} written "
-                        "by experiments/real_images.py --card")
+                   help="a JSON file whose entries join the model's card, e.g. {\"real_images\": {...}}, the "
+                        "numbers of its real-image checks")
     b.add_argument("--machine", default=None, help="the machine it was trained on (default: this one)")
     b.add_argument("--earlier-stage", dest="earlier_stages", action="append", default=[], metavar="CONFIG=WORKDIR",
                    help="a run this one was initialised from, with the --config it ran (repeat, oldest first), "

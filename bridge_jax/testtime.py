@@ -1,0 +1,90 @@
+"""What a predictor does at test time besides running the network once: one frozen record, `TestTime`.
+
+    TestTime()                                        # the network's maps as they are
+    TestTime(refine=1, symmetry="flips", polish="photometric")
+    TestTime.from_card(zoo.info("long"))              # what a shipped model's card recommends
+
+Fields, each one stage of `bridge_jax.stages` (run in this order, `stages.predicted_maps`):
+
+* `symmetry`: average every network call over mirrored (and transposed) copies of the pair (`SYMMETRY_MODES`);
+* `refine`: run the network K more times per pair on `b` warped by the maps so far, composing what it still
+  finds with them (0 .. `MAX_REFINE`);
+* `polish`: correct the final maps against the images at the working size (`POLISH_MODES`; `bridge_jax.polish`).
+
+A record is checked when it is made, so a `Predictor` never holds an unknown setting; it is hashable and
+compares by value, so compiled programs are kept per record. `with_given` applies the settings a user gave
+(None = not given) to a default record, naming the option of a bad value. This module imports no jax: the
+command-line parsers use it.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, Optional
+
+MAX_REFINE = 8
+"""The most refinement passes a `TestTime` accepts (each costs one more network call per pair)."""
+SYMMETRY_MODES = ("none", "flips", "dihedral")
+"""Test-time symmetry averaging (`stages.symmetric_maps`): "none"; "flips" = the pair as given and flipped
+left-right, upside-down and both (4 network calls' worth); "dihedral" = those 4 and the same 4 transposed (8).
+Stereo pairs count only the copies that are still left -> right stereo pairs: as given and upside-down."""
+POLISH_MODES = ("none", "photometric")
+"""Test-time polish of a predictor's maps: "none", or "photometric" (`polish.polish_maps`)."""
+OPTIONS = {"refine": "--refine", "symmetry": "--symmetry", "polish": "--polish"}
+"""The command-line option of each field."""
+CARD_KEYS = {"refine": "default_refine", "symmetry": "default_symmetry", "polish": "default_polish"}
+"""The entry of a shipped model's card (`zoo.info`) that recommends each field."""
+
+
+def _check(field: str, value: Any, name: str) -> Any:
+    """`value` of `field` as the record holds it; ValueError naming `name` (a field or an option) otherwise."""
+    if field == "refine":
+        if isinstance(value, bool) or not hasattr(value, "__index__") or not 0 <= int(value) <= MAX_REFINE:
+            raise ValueError(f"{name} {value!r}: expected a whole number of refinement passes from 0 to {MAX_REFINE}")
+        return int(value)
+    modes = SYMMETRY_MODES if field == "symmetry" else POLISH_MODES
+    if value not in modes:
+        raise ValueError(f"{name} {value!r}: expected one of {', '.join(modes)}")
+    return str(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class TestTime:
+    """The test-time stages of a predictor (see the module docstring); validated on construction."""
+
+    __test__ = False  # a library class, not a pytest test class
+
+    refine: int = 0
+    symmetry: str = "none"
+    polish: str = "none"
+
+    def __post_init__(self):
+        for field in dataclasses.fields(self):
+            object.__setattr__(self, field.name, _check(field.name, getattr(self, field.name), field.name))
+
+    def with_given(self, given: Mapping[str, Any], options: Optional[Mapping[str, str]] = None) -> "TestTime":
+        """This record with the fields of `given` that are not None replaced; a bad value is a ValueError
+        naming its option (`options[field]`, default the field's name)."""
+        names = {**{f: f for f in CARD_KEYS}, **(options or {})}
+        unknown = sorted(set(given) - set(CARD_KEYS))
+        if unknown:
+            raise TypeError(f"unknown test-time setting(s) {', '.join(unknown)}; expected {', '.join(CARD_KEYS)}")
+        return dataclasses.replace(self, **{f: _check(f, v, names[f]) for f, v in given.items() if v is not None})
+
+    @property
+    def network_part(self) -> "TestTime":
+        """The stages that run inside the network program (all but the polish: `stages.POLISH_APART`)."""
+        return dataclasses.replace(self, polish="none")
+
+    def to_dict(self) -> dict:
+        """{"refine": int, "symmetry": str, "polish": str}, as info files write it."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_card(cls, card: Optional[Mapping]) -> "TestTime":
+        """The settings a shipped model's card (`zoo.info`) recommends; the defaults where it names none."""
+        card = card or {}
+        return cls(**{f: card[key] for f, key in CARD_KEYS.items() if card.get(key) is not None})
+
+
+__all__ = ["TestTime", "MAX_REFINE", "SYMMETRY_MODES", "POLISH_MODES", "OPTIONS", "CARD_KEYS"]
