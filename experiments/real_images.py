@@ -321,7 +321,8 @@ def main(argv=None) -> int:
                         "opencv": results[check][strongest[check]]} for check in checks}
         with open(args.card, "w") as f:
             first = methods[next(iter(card_labels.values()))]  # numbers at the first --refine/--symmetry/--polish
-            json.dump({"real_images": card, "real_images_opencv": {c: strongest[c] for c in checks},
+            json.dump({"real_images": card,
+                       "real_images_opencv": {c: baseline_label(c, strongest[c]) for c in checks},
                        "real_images_measured": f"{stamp}, {timing.machine()}",
                        "default_working_size": pick_working_size(card), "default_refine": first.refine,
                        "default_symmetry": first.symmetry, "default_polish": first.polish}, f, indent=1)

@@ -192,3 +192,15 @@ def test_strongest_baseline_and_merged_model_rows():
     text = real_images.markdown(moto, "## head")
     assert text.count("OpenCV SGBM") == 2  # one row (the same SGBM under each flow) and the line naming it
     assert "| **OpenCV SGBM** (strongest baseline) | 1.600 | 8.3 |" in text
+
+
+def test_the_cards_name_their_strongest_baselines():
+    """The shipped cards' "opencv" numbers are each check's strongest baseline, and `bridge-zoo show` names it."""
+    from bridge_jax import zoo
+    for name in ("demo", "long"):
+        card = zoo.info(name)
+        assert set(card["real_images_opencv"]) == set(card["real_images"])
+        lines = zoo.card_lines(name)
+        for check, label in card["real_images_opencv"].items():
+            assert label.startswith("OpenCV")
+            assert any(ln.startswith(f"  {check} @ opencv ({label}, the strongest baseline):") for ln in lines)
