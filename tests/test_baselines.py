@@ -204,3 +204,18 @@ def test_the_cards_name_their_strongest_baselines():
         for check, label in card["real_images_opencv"].items():
             assert label.startswith("OpenCV")
             assert any(ln.startswith(f"  {check} @ opencv ({label}, the strongest baseline):") for ln in lines)
+
+
+def test_baselines_only_needs_the_models_rows(tmp_path, capsys):
+    for argv, says in ((["--baselines-only"], "go together"),
+                       (["--models-from", str(tmp_path / "none.json")], "go together"),
+                       (["--baselines-only", "--models-from", str(tmp_path / "none.json")], "cannot read"),
+                       (["--baselines-only", "--models-from", "x.json", "--card", "c.json"], "writes no --card")):
+        with pytest.raises(SystemExit) as e:
+            real_images.main(argv)
+        assert e.value.code == 2
+        assert says in capsys.readouterr().err
+    (tmp_path / "empty.json").write_text("{}")
+    with pytest.raises(SystemExit):
+        real_images.main(["--baselines-only", "--models-from", str(tmp_path / "empty.json")])
+    assert "no check results" in capsys.readouterr().err
