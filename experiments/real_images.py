@@ -7,16 +7,17 @@ checks, each run for every model (`--models`, shipped names or checkpoint paths)
 next to OpenCV on the same inputs at full resolution:
 
 1. **Middlebury "Motorcycle"** (scikit-image's stereo pair with its ground-truth disparity, 741x500): disparity
-   EPE and D1 (KITTI outliers: > 3 px and > 5 %) over the pixels with ground truth, against SGBM with its holes
-   filled (`eval.baselines.sgbm_disparity`).
+   EPE and D1 (KITTI outliers: > 3 px and > 5 %) over the pixels with ground truth, against SGBM in its
+   standard form with its holes filled (`eval.baselines.sgbm_disparity`), searching the range Middlebury states
+   for the pair (`real_checks.stated_max_disparity`).
 2. **Real photos under known motion** (`real_checks.homography_pair`): a held-out photo
    (`data.photos.HELDOUT_PHOTOS`, never used in training) seen through a random homography, with 2-3
    independently moving pasted patches (affine motion) cut from another held-out photo, and a camera-response
    change plus noise between the frames. The flow is exact by construction and so is the occlusion mask: flow
-   EPE-all / EPE-noc and Fl-all against DIS (medium).
+   EPE-all / EPE-noc and Fl-all.
 3. **Held-out synthetic frames** (`synthetic.SCENE_PRESETS["heldout"]`: held-out photos as textures, a focal
    length and baseline no training preset draws, stronger photometric differences), 256x512: flow EPE-all,
-   EPE-noc and disparity EPE / D1 against DIS and SGBM, and zero motion for scale.
+   EPE-noc and disparity EPE / D1 (SGBM searching the generator's stated range), and zero motion for scale.
 4. **Pure shifts** (`real_checks.shift_set`): each held-out photo moved by 4 and 8 px, horizontally and
    vertically, with a camera-response change: EPE and the gain along the motion, per direction. It shows a
    direction the training scenes never moved in (the vertical, before `real_motion`).
@@ -24,8 +25,16 @@ next to OpenCV on the same inputs at full resolution:
    camera-response change: EPE and the gain (least-squares scale of the predicted flow), per direction. It shows
    whether a model reads expansion and contraction at their size (`long` before stage 6 read them 3-5 % short).
 
+Every check runs zero motion and three OpenCV baselines, each SGBM for disparity with one optical flow:
+DIS (medium preset), DIS down to the finest scale (`setFinestScale(0)`) and DeepFlow (`eval.baselines.FLOWS`;
+DeepFlow needs `opencv-contrib-python-headless`, the `experiments` extra). Each table names the strongest
+baseline of its check (`strongest_baseline`).
+
     python experiments/real_images.py --models demo,long --sizes trained,native \\
         --out experiments/results/real_images.md --pictures experiments/results/real_images
+
+`--baselines-only --models-from FILE.json` runs only zero motion and the baselines, and takes the models' rows
+from an earlier run's JSON (the models are not rerun; nor are pictures or cards written).
 
 Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
 panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
@@ -44,6 +53,7 @@ import json
 import os
 import sys
 import time
+from typing import Optional
 
 import cv2
 
@@ -115,32 +125,101 @@ def pick_working_size(card: dict) -> str:
     return winners[0] if winners else "trained"
 
 
+BASELINES = tuple(f"OpenCV SGBM / {flow}" for flow in ("DIS medium", "DIS fine", "DeepFlow"))
+"""The names of the OpenCV baselines' rows: SGBM (standard form, the check's stated range) with each flow."""
+ZERO = "zero motion"
+
+STRONGEST_BY = {"motorcycle": ("d1_all", "epe_all"), "homography": ("epe_all",),
+                "heldout_synthetic": ("flow_epe_all",), "shifts": ("epe_horizontal", "epe_vertical"),
+                "zooms": ("epe_expand", "epe_contract")}
+"""What makes a baseline the strongest of a check: the lowest mean of these numbers (every baseline's stereo is
+the same SGBM, so on the held-out synthetic set the flow decides)."""
+
+
+def is_baseline(name: str) -> bool:
+    """Whether a row of the results is zero motion or an OpenCV baseline (of this version or an earlier one)."""
+    return name == ZERO or name.startswith("OpenCV")
+
+
+def strongest_baseline(results: dict, check: str) -> Optional[str]:
+    """The name of the OpenCV row of `results[check]` with the lowest mean of `STRONGEST_BY[check]` (the first
+    of a tie); None when the check has none."""
+    rows = {n: m for n, m in results.get(check, {}).items() if n.startswith("OpenCV")}
+    if not rows:
+        return None
+    return min(rows, key=lambda n: sum(rows[n][k] for k in STRONGEST_BY[check]) / len(STRONGEST_BY[check]))
+
+
+COLUMNS = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
+           "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
+           "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
+                                 ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")],
+           "shifts": [("epe_horizontal", "EPE horizontal px"), ("epe_vertical", "EPE vertical px"),
+                      ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")],
+           "zooms": [("epe_expand", "EPE expanding px"), ("epe_contract", "EPE contracting px"),
+                     ("gain_expand", "gain expanding"), ("gain_contract", "gain contracting")]}
+TITLES = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
+          "homography": "Held-out photos under homographies + moving patches (flow)",
+          "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)",
+          "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)",
+          "zooms": "Held-out photos zoomed by +4 % and -4 % about their centre (flow; gain 1 = exact)"}
+
+
+STEREO_ONLY, FLOW_ONLY = ("motorcycle",), ("homography", "shifts", "zooms")
+
+
+def baseline_label(check: str, name: str) -> str:
+    """How `check`'s table names the baseline row `name` ("OpenCV SGBM / DeepFlow"): by the half of it the check
+    uses ("OpenCV SGBM" on Motorcycle, "OpenCV DeepFlow" on a flow-only check); other rows as they are."""
+    if not name.startswith("OpenCV SGBM / "):
+        return name
+    if check in STEREO_ONLY:
+        return "OpenCV SGBM"
+    if check in FLOW_ONLY:
+        return "OpenCV " + name.split(" / ", 1)[1]
+    return name
+
+
+def _number(key: str, value: float) -> str:
+    return f"{value:.3f}" if key.startswith(("epe", "flow_epe", "disp_epe", "gain")) else f"{value:.1f}"
+
+
 def markdown(results: dict, header: str) -> str:
     lines = [header, ""]
-    cols = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
-            "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
-            "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
-                                  ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")],
-            "shifts": [("epe_horizontal", "EPE horizontal px"), ("epe_vertical", "EPE vertical px"),
-                       ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")],
-            "zooms": [("epe_expand", "EPE expanding px"), ("epe_contract", "EPE contracting px"),
-                      ("gain_expand", "gain expanding"), ("gain_contract", "gain contracting")]}
-    titles = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
-              "homography": "Held-out photos under homographies + moving patches (flow)",
-              "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)",
-              "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)",
-              "zooms": "Held-out photos zoomed by +4 % and -4 % about their centre (flow; gain 1 = exact)"}
-    for check, cs in cols.items():
+    for check, cs in COLUMNS.items():
         if check not in results:  # results of an earlier version of the script
             continue
-        lines += [f"### {titles[check]}", "", "| method | " + " | ".join(c[1] for c in cs) + " |",
+        best = strongest_baseline(results, check)
+        lines += [f"### {TITLES[check]}", "", "| method | " + " | ".join(c[1] for c in cs) + " |",
                   "|---" * (len(cs) + 1) + "|"]
+        shown = set()
         for name, m in results[check].items():
-            lines.append(f"| {name} | " + " | ".join(f"{m[c[0]]:.3f}" if c[0].startswith(("epe", "flow_epe",
-                                                                                             "disp_epe", "gain"))
-                                                      else f"{m[c[0]]:.1f}" for c in cs) + " |")
+            label = baseline_label(check, name)
+            if label in shown:  # the same SGBM under another flow: one row
+                continue
+            shown.add(label)
+            label = f"**{label}** (strongest baseline)" if name == best else label
+            lines.append(f"| {label} | " + " | ".join(_number(c[0], m[c[0]]) if c[0] in m else "–" for c in cs)
+                         + " |")
         lines.append("")
+        if best:
+            lines += [f"Strongest baseline: {baseline_label(check, best)} (lowest {' / '.join(STRONGEST_BY[check])}).",
+                      ""]
     return "\n".join(lines)
+
+
+def merge_model_rows(results: dict, earlier: dict) -> dict:
+    """`results` (baselines only, as `run_checks` returns them) with the model rows of an `earlier` run's JSON
+    after them, per check; its baseline rows (zero motion, any OpenCV) are left out. {"seconds"} keeps only
+    this run's."""
+    merged = {}
+    for check in real_checks.CHECKS:
+        merged[check] = dict(results.get(check, {}))
+        for name, m in (earlier.get(check) or {}).items():
+            if not is_baseline(name):
+                merged[check][name] = m
+    merged["seconds"] = results.get("seconds", {})
+    return merged
 
 
 def main(argv=None) -> int:
@@ -161,13 +240,34 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
     p.add_argument("--pictures", default=None, help="folder for the picture panels")
     p.add_argument("--card", default=None,
-                   help="write the first model's numbers (per check and size, with OpenCV's) as a model-card JSON "
-                        "for `bridge-zoo build NAME --from WORKDIR --card FILE`")
+                   help="write the first model's numbers (per check and size, with the strongest OpenCV "
+                        "baseline's) as a model-card JSON for `bridge-zoo build NAME --from WORKDIR --card FILE`")
+    p.add_argument("--baselines-only", action="store_true",
+                   help="run only zero motion and the OpenCV baselines; the models' rows come from --models-from")
+    p.add_argument("--models-from", default=None,
+                   help="with --baselines-only: an earlier run's JSON whose model rows the tables show")
     args = p.parse_args(argv)
-    opencv = "OpenCV (SGBM filled / DIS medium)"
-    methods: dict = {"zero motion": real_checks.ZeroMotion(), opencv: real_checks.OpenCV()}
+    if args.baselines_only != bool(args.models_from):
+        p.error("--baselines-only and --models-from go together: the models' rows come from that JSON")
+    if args.baselines_only and (args.card or args.pictures):
+        p.error("--baselines-only writes no --card or --pictures: those need the models' maps")
+    earlier = None
+    if args.models_from:
+        try:
+            with open(args.models_from) as f:
+                earlier = json.load(f)
+        except (OSError, ValueError) as e:
+            p.error(f"--models-from {args.models_from}: cannot read a results JSON ({e})")
+        if not isinstance(earlier, dict) or not any(isinstance(earlier.get(c), dict) for c in real_checks.CHECKS):
+            p.error(f"--models-from {args.models_from}: no check results in it")
+    from bridge_jax.eval import baselines
+    if not baselines.has_contrib():
+        p.error(f"DeepFlow: {baselines.CONTRIB_HINT}")
+    methods: dict = {ZERO: real_checks.ZeroMotion()}
+    methods.update({name: real_checks.OpenCV(flow=name.split(" / ")[1]) for name in BASELINES})
     card_labels = {}
-    for i, model in enumerate(m for m in args.models.split(",") if m):
+    models = [] if args.baselines_only else [m for m in args.models.split(",") if m]
+    for i, model in enumerate(models):
         passes = [None] if args.refine == "card" else [int(v) for v in args.refine.split(",") if v]
         symmetries = [None] if args.symmetry == "card" else [v for v in args.symmetry.split(",") if v]
         polishes = [None] if args.polish == "card" else [v for v in args.polish.split(",") if v]
@@ -193,21 +293,36 @@ def main(argv=None) -> int:
                          pictures=args.pictures)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     header = f"## Real-image checks, {stamp}, {timing.machine()}"
+    extra = {}
+    if earlier is not None:
+        results = merge_model_rows(results, earlier)
+        extra = {"models_from": {"file": args.models_from, "date": earlier.get("date"),
+                                 "machine": earlier.get("machine")}}
+        header += (f" (baselines; the models' rows from {os.path.basename(args.models_from)}, "
+                   f"{earlier.get('date')}, {earlier.get('machine')})")
+    ranges = {c: real_checks.stated_max_disparity(c, w) for c, w in (("motorcycle", 741), ("heldout_synthetic", 512))}
+    header += ("\n\nSGBM searches each stereo pair's stated range: Motorcycle 0..%.1f px (Middlebury's ndisp), "
+               "held-out synthetic 0..%.1f px (the generator's maximum)." % (ranges["motorcycle"],
+                                                                           ranges["heldout_synthetic"]))
     text = markdown(results, header)
     print(text)
     print("seconds per method:", {k: round(v, 1) for k, v in results["seconds"].items()})
+    strongest = {check: strongest_baseline(results, check) for check in real_checks.CHECKS}
     if args.out:
         with open(args.out, "w") as f:
             f.write(text + "\n")
         with open(os.path.splitext(args.out)[0] + ".json", "w") as f:
-            json.dump({"date": stamp, "machine": timing.machine(), **results}, f, indent=1)
+            json.dump({"date": stamp, "machine": timing.machine(), **extra, "stated_max_disparity": ranges,
+                       "strongest_baseline": strongest, **results}, f, indent=1)
     if args.card:
         checks = ("motorcycle", "homography", "heldout_synthetic")
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
-                        "opencv": results[check][opencv]} for check in checks}
+                        "opencv": results[check][strongest[check]]} for check in checks}
         with open(args.card, "w") as f:
             first = methods[next(iter(card_labels.values()))]  # numbers at the first --refine/--symmetry/--polish
-            json.dump({"real_images": card, "real_images_measured": f"{stamp}, {timing.machine()}",
+            json.dump({"real_images": card,
+                       "real_images_opencv": {c: baseline_label(c, strongest[c]) for c in checks},
+                       "real_images_measured": f"{stamp}, {timing.machine()}",
                        "default_working_size": pick_working_size(card), "default_refine": first.refine,
                        "default_symmetry": first.symmetry, "default_polish": first.polish}, f, indent=1)
     return 0

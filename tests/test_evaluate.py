@@ -63,7 +63,8 @@ def test_bring_to_frame_t():
 def test_fill_invalid_disparity_like_devkit():
     disp = np.array([[0, 5, 0, 0, 3, 0], [0, 0, 0, 0, 0, 0]], np.float32)
     out = baselines.fill_invalid_disparity(disp, disp > 0)
-    np.testing.assert_array_equal(out, [[5, 5, 3, 3, 3, 3], [0, 0, 0, 0, 0, 0]])
+    # a row without a valid pixel takes the filled row above it (the devkit's bottom extrapolation)
+    np.testing.assert_array_equal(out, [[5, 5, 3, 3, 3, 3], [5, 5, 3, 3, 3, 3]])
 
 
 # ----------------------------------------------------------------------------------------------------------------

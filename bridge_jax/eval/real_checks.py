@@ -296,16 +296,65 @@ class ZeroMotion:
         return [np.zeros(a.shape[:2] + ((2,) if task == "flow" else ()), np.float32) for task, a, _ in jobs]
 
 
+MIDDLEBURY_MOTORCYCLE_NDISP = (270, 2964)
+"""Middlebury 2014's stated disparity range of the Motorcycle pair: ``ndisp`` = 270 levels (a conservative bound
+a stereo method may use: it searches d = 0..269) at the full 2964 px width (its calib.txt; scikit-image's copy
+is the pair downsampled 4×)."""
+
+HELDOUT_SYNTHETIC_MAX_DISPARITY = 46.4
+"""The largest disparity px the held-out synthetic scenes have at 256x512 (`synthetic.SCENE_PRESETS["heldout"]`):
+the maximum over 64 frames of that generator drawn with seeds other than the check's (`sample_seed(7_000_001,
+i)`, i < 64), 46.4 px; the check's own 16 frames reach 30.2."""
+
+
+def stated_max_disparity(check: str, width: int) -> Optional[float]:
+    """The largest disparity px a user of `check`'s stereo pairs would know they have, at an image `width` px
+    wide, from the data's own statement, never from a score: Motorcycle's ``ndisp`` (`MIDDLEBURY_MOTORCYCLE_NDISP`,
+    269 px at 2964 px, scaled to `width`: 67.3 px at scikit-image's 741), the held-out synthetic generator's
+    maximum (`HELDOUT_SYNTHETIC_MAX_DISPARITY` at 512 px, scaled to `width`); None for the checks without stereo
+    pairs."""
+    if check == "motorcycle":
+        ndisp, full_width = MIDDLEBURY_MOTORCYCLE_NDISP
+        return (ndisp - 1) * width / full_width
+    if check == "heldout_synthetic":
+        return HELDOUT_SYNTHETIC_MAX_DISPARITY * width / HELDOUT_SYNTHETIC_SIZE[1]
+    if check not in CHECKS:
+        raise ValueError(f"unknown real-image check {check!r}; checks: {', '.join(CHECKS)}")
+    return None
+
+
 class OpenCV:
-    """OpenCV at the full input resolution: StereoSGBM with its holes filled for "stereo", DIS (medium) for
-    "flow" (`eval.baselines`)."""
+    """OpenCV at the full input resolution (`eval.baselines`): StereoSGBM in its standard form with its holes
+    filled for "stereo", and the optical flow `flow` (a name of `baselines.FLOWS`: "DIS medium", "DIS fine",
+    "DeepFlow") for "flow". SGBM searches 0..`max_disparity` px when given; else, with `check`, the range
+    that check's pairs state (`stated_max_disparity` at each pair's width); else ``min(192, W/4)`` levels.
+    `score` runs it with `check` set (`for_check`)."""
+
+    def __init__(self, flow: str = "DIS medium", max_disparity: Optional[float] = None,
+                 check: Optional[str] = None):
+        from bridge_jax.eval import baselines  # see predict
+        if flow not in baselines.FLOWS:
+            raise ValueError(f"OpenCV flow {flow!r}: expected one of {', '.join(baselines.FLOWS)}")
+        if check is not None and check not in CHECKS:
+            raise ValueError(f"unknown real-image check {check!r}; checks: {', '.join(CHECKS)}")
+        self.flow, self.max_disparity, self.check = flow, max_disparity, check
+
+    def for_check(self, check: str) -> "OpenCV":
+        """The same method with the stereo range `check`'s pairs state (unless `max_disparity` is set)."""
+        return OpenCV(self.flow, self.max_disparity, check)
+
+    def _max_disparity(self, width: int) -> Optional[float]:
+        if self.max_disparity is not None or self.check is None:
+            return self.max_disparity
+        return stated_max_disparity(self.check, width)
 
     def predict(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         del batch  # one pair at a time
         # imported here: eval.baselines brings jax (through eval.methods), which `bridge-zoo` would otherwise load
         # for every command, since its parser takes POLISH_CHOICES from this module
         from bridge_jax.eval import baselines
-        return [baselines.dis_flow(a, b) if task == "flow" else baselines.sgbm_disparity(a, b)
+        flow = baselines.FLOWS[self.flow]
+        return [flow(a, b) if task == "flow" else baselines.sgbm_disparity(a, b, self._max_disparity(a.shape[1]))
                 for task, a, b in jobs]
 
 
@@ -390,7 +439,12 @@ def build(check: str, *, per_photo: int = 3, synthetic_num: int = 16, limit: Opt
 
 def score(method, check: str, data: Any) -> tuple[dict, np.ndarray]:
     """(numbers, first map) of `method` on `check` given its `build` data: numbers {metric: value}, the map
-    the check's first input got (a disparity (H, W) px for "motorcycle", else a flow (H, W, 2) px)."""
+    the check's first input got (a disparity (H, W) px for "motorcycle", else a flow (H, W, 2) px). A method
+    with a `for_check(check)` (`OpenCV`: the check's stated disparity range) runs as that returns."""
+    if check not in CHECKS:
+        raise ValueError(f"unknown real-image check {check!r}; checks: {', '.join(CHECKS)}")
+    if hasattr(method, "for_check"):
+        method = method.for_check(check)
     return CHECKS[check](method, data)
 
 

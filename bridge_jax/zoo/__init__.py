@@ -476,7 +476,9 @@ def card_lines(name: str) -> list[str]:
     if chosen.polish != "none":
         lines.append(f"  default polish: {chosen.polish} (chosen by its real-image checks, whose numbers "
                      "below are with it; --polish overrides it)")
+    baselines = meta.get("real_images_opencv") or {}  # which OpenCV method each check's "opencv" numbers are
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
-            lines.append(f"  {check} @ {size}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
+            which = f" ({baselines[check]}, the strongest baseline)" if size == "opencv" and check in baselines else ""
+            lines.append(f"  {check} @ {size}{which}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
     return lines
