@@ -33,10 +33,10 @@ import jax.numpy as jnp
 from bridge_jax import cli, compile_cache, files, inference
 
 
-def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
-    """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` at the predictor's working size, params as
-    constants, with the predictor's `refine` passes; `task` picks the network of a separate-networks model (and
-    for "stereo" keeps the refinement on image rows)."""
+def inference_function(predictor: inference.Predictor, batch: int = 1, task: str = "flow"):
+    """The jittable function every export format writes: `infer(pairs (batch, H, W, 6)) -> (px0, frac0)` at the
+    predictor's working size, params as constants, with the predictor's `refine` passes, symmetry and polish;
+    `task` picks the network of a separate-networks model (and for "stereo" keeps the refinement on image rows)."""
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
     if task not in inference.PAIR_KINDS:
@@ -54,6 +54,13 @@ def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str 
                                       predictor.symmetry, predictor.polish)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
+    return infer
+
+
+def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
+    """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` (`inference_function`) at the predictor's working
+    size."""
+    infer = inference_function(predictor, batch, task)
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
     return jax.export.export(jax.jit(infer))(spec)
 
