@@ -119,6 +119,24 @@ def _unsupported_stage(predictor, batch, task, primitive: str) -> str | None:
     return None
 
 
+def convert(fn, specs, *, name: str = "bridge_jax", input_names=None, output_names=None, opset: int = OPSET):
+    """`fn(*arrays)` at `specs` (`jax.ShapeDtypeStruct`s) as an `onnx.ModelProto`: traced to a jaxpr, whose
+    primitives jax2onnx converts (see the module docstring). NotImplementedError from the converter for a
+    primitive it has no ONNX form of."""
+    jax2onnx, _ = require_converter()
+    from jax.extend.core import jaxpr_as_fun
+
+    closed = jax.make_jaxpr(fn)(*specs)
+    quiet = logging.getLogger("onnx_ir")  # "value type ... is not known ... Skipping serialization" of shape notes
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        return jax2onnx.to_onnx(jaxpr_as_fun(closed), list(specs), model_name=name, opset=opset,
+                                input_names=input_names, output_names=output_names)
+    finally:
+        quiet.setLevel(level)
+
+
 def export_onnx(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow", opset: int = OPSET):
     """The ONNX model (`onnx.ModelProto`) of `export.inference_function(predictor, batch, task)`: input
     `pairs (batch, H, W, 6)`, outputs `px0`, `frac0` `(batch, H, W, 2)`.
@@ -127,20 +145,15 @@ def export_onnx(predictor: inference.Predictor, *, batch: int = 1, task: str = "
     UnsupportedStage (one line naming the stage's option) when a stage cannot be expressed in ONNX."""
     from bridge_jax import export  # not at import: export imports this module for --format onnx
 
-    jax2onnx, _ = require_converter()
+    require_converter()
     if predictor.dtype is not None and jnp.dtype(predictor.dtype) != jnp.float32:
         raise ValueError(f"--dtype {jnp.dtype(predictor.dtype).name}: the ONNX export computes in float32 "
                          "(--dtype float32)")
     infer = export.inference_function(predictor, batch, task)
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
-    closed = jax.make_jaxpr(infer)(spec)
-    from jax.extend.core import jaxpr_as_fun
-    quiet = logging.getLogger("onnx_ir")  # "value type ... is not known ... Skipping serialization" of shape notes
-    level = quiet.level
-    quiet.setLevel(logging.ERROR)
     try:
-        model = jax2onnx.to_onnx(jaxpr_as_fun(closed), [spec], model_name=predictor.model_name, opset=opset,
-                                 input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES))
+        model = convert(infer, [spec], name=predictor.model_name, input_names=[INPUT_NAME],
+                        output_names=list(OUTPUT_NAMES), opset=opset)
     except NotImplementedError as e:
         found = re.search(r"primitive '([^']+)'", str(e))
         primitive = found.group(1) if found else None
@@ -148,8 +161,6 @@ def export_onnx(predictor: inference.Predictor, *, batch: int = 1, task: str = "
         what = f"primitive {primitive!r}" if primitive else str(e).strip().splitlines()[0]
         raise UnsupportedStage(f"--format onnx: {stage or 'the model'} uses {what}, which jax2onnx "
                                f"{converter_version()} cannot express in ONNX (--format stablehlo can)") from e
-    finally:
-        quiet.setLevel(level)
     meta = {"bridge_jax.model": predictor.model_name, "bridge_jax.height": predictor.height,
             "bridge_jax.width": predictor.width, "bridge_jax.refine": predictor.refine,
             "bridge_jax.symmetry": predictor.symmetry, "bridge_jax.polish": predictor.polish,
@@ -167,5 +178,5 @@ def save_model(model, out: str | os.PathLike) -> Path:
     return Path(files.write_bytes(out, model.SerializeToString()))
 
 
-__all__ = ["export_onnx", "save_model", "require_converter", "MissingExtra", "UnsupportedStage", "OPSET",
+__all__ = ["export_onnx", "convert", "save_model", "require_converter", "MissingExtra", "UnsupportedStage", "OPSET",
            "INPUT_NAME", "OUTPUT_NAMES", "INSTALL_HINT"]
