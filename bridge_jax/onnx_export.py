@@ -161,6 +161,10 @@ def export_onnx(predictor: inference.Predictor, *, batch: int = 1, task: str = "
         what = f"primitive {primitive!r}" if primitive else str(e).strip().splitlines()[0]
         raise UnsupportedStage(f"--format onnx: {stage or 'the model'} uses {what}, which jax2onnx "
                                f"{converter_version()} cannot express in ONNX (--format stablehlo can)") from e
+    except Exception as e:  # a converter failure of another kind: still one line (the traceback with --debug)
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise UnsupportedStage(f"--format onnx: jax2onnx {converter_version()} failed to convert the model "
+                               f"({type(e).__name__}: {first})") from e
     meta = {"bridge_jax.model": predictor.model_name, "bridge_jax.height": predictor.height,
             "bridge_jax.width": predictor.width, "bridge_jax.refine": predictor.refine,
             "bridge_jax.symmetry": predictor.symmetry, "bridge_jax.polish": predictor.polish,
@@ -170,7 +174,24 @@ def export_onnx(predictor: inference.Predictor, *, batch: int = 1, task: str = "
         entry = model.metadata_props.add()
         entry.key, entry.value = key, str(value)
     model.producer_name = "bridge_jax"
+    check_loads(model)
     return model
+
+
+def check_loads(model) -> None:
+    """onnxruntime (when installed) builds a session of `model`: a graph the converter got wrong is refused here,
+    before anything is written, instead of where the model is deployed. UnsupportedStage otherwise."""
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        return
+    options = ort.SessionOptions()
+    options.log_severity_level = 3  # the converter's loose shape notes are warnings only
+    try:
+        ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime's own exception types
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise UnsupportedStage(f"--format onnx: onnxruntime cannot load the converted model ({first})") from e
 
 
 def save_model(model, out: str | os.PathLike) -> Path:
@@ -178,5 +199,5 @@ def save_model(model, out: str | os.PathLike) -> Path:
     return Path(files.write_bytes(out, model.SerializeToString()))
 
 
-__all__ = ["export_onnx", "convert", "save_model", "require_converter", "MissingExtra", "UnsupportedStage", "OPSET",
+__all__ = ["export_onnx", "convert", "check_loads", "save_model", "require_converter", "MissingExtra", "UnsupportedStage", "OPSET",
            "INPUT_NAME", "OUTPUT_NAMES", "INSTALL_HINT"]
