@@ -11,7 +11,8 @@ WORKDIR ?= work/demo
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,onnx]'
+	$(PY) -m pip install --quiet --no-deps 'jax2onnx>=0.17.1,<0.18'  # see pyproject's onnx extra
 	@touch $(STAMP)
 
 install: $(STAMP)

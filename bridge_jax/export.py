@@ -1,6 +1,7 @@
 """Export the inference network to a serialized StableHLO artifact (`jax.export`), weights baked in.
 
     bridge-export --checkpoint demo --out demo.stablehlo
+    bridge-export --checkpoint demo --format onnx --out demo.onnx     # pip install 'bridge-jax[onnx]' first
     bridge-export --checkpoint CKPT --out model.stablehlo [--height 256 --width 512] [--batch 1]
                                 [--dtype float32|bfloat16] [--task flow|stereo]
 
@@ -16,6 +17,9 @@ program). The working size
     from jax import export
     exp = export.deserialize(open("model.stablehlo", "rb").read())
     px, frac = exp.call(pairs)
+
+`--format onnx` writes the same function as an ONNX model (`bridge_jax.onnx_export`: input "pairs", outputs "px0",
+"frac0"), for onnxruntime, TensorRT or OpenCV's dnn module, which need no JAX (experiments/onnx_predict.py).
 
 Input resizing and mapping back to the original resolution are not part of the artifact (see
 `bridge_jax.inference.resize_images` / `flow_to_input_resolution` / `disparity_to_input_resolution`).
@@ -34,28 +38,13 @@ import jax.numpy as jnp
 from bridge_jax import cli, compile_cache, files, inference, stages, testtime
 
 
+inference_function = stages.inference_function  # the function both formats write (one composition, stages.py)
+
+
 def export_network(predictor: inference.Predictor, *, batch: int = 1, task: str = "flow") -> jax.export.Exported:
-    """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` at the predictor's working size, params as
-    constants, with the predictor's test-time stages (`predictor.test_time`, `stages.predicted_maps`); `task`
-    picks the network of a separate-networks model (and for "stereo" keeps the maps on image rows)."""
-    if batch < 1:
-        raise ValueError(f"--batch must be >= 1, got {batch}")
-    inference.check_task(task, "--task")
-    params = jax.tree.map(jnp.asarray, predictor.params)
-    rows = predictor.net.static_rows((task == "stereo",) * batch)
-    flow_rows = jnp.asarray(stages.flow_rows([task] * batch))
-    test_time = predictor.test_time
-
-    def infer(pairs):
-        if test_time == testtime.TestTime():
-            maps = predictor.net(params, pairs, rows)
-            return maps["px"][0], maps["frac"][0]
-        network_program = lambda x: stages.network_maps(predictor.net, params, x, rows, flow_rows,
-                                                        test_time.network_part)
-        polish_program = lambda x, maps, flows: stages.polish_stage(x, maps, flows, test_time, predictor.polish_config)
-        px = stages.predicted_maps(pairs, flow_rows, test_time, network_program, polish_program)
-        return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
-
+    """`jax.export` of `pairs (batch, H, W, 6) -> (px0, frac0)` (`inference_function`) at the predictor's working
+    size."""
+    infer = inference_function(predictor, batch, task)
     spec = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
     return jax.export.export(jax.jit(infer))(spec)
 
@@ -75,7 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--checkpoint", required=True,
                     help="the model: a params dir, a training workdir, a step dir, or a shipped model name such as "
                          "demo")
-    ap.add_argument("--out", required=True, help="output file (serialized StableHLO), written atomically")
+    ap.add_argument("--out", required=True, help="output file (serialized StableHLO, or the ONNX model), written "
+                                                 "atomically")
+    ap.add_argument("--format", choices=["stablehlo", "onnx"], default="stablehlo",
+                    help="stablehlo: jax.export's artifact, run by JAX; onnx: an ONNX model (opset "
+                         "17), run by onnxruntime and others without JAX (needs pip install 'bridge-jax[onnx]')")
     ap.add_argument("--height", type=int, default=None,
                     help="working height, a multiple of the model's input multiple (64 for resnet_md and pwcnet, "
                          "8 for pwc_lite); default: the height the checkpoint was trained at, else 256")
@@ -103,17 +96,26 @@ def main(argv: list[str] | None = None) -> int:
         compile_cache.enable(args.compilation_cache)
         if args.batch < 1:   # checked before the (slow) checkpoint load
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
+        if args.format == "onnx":
+            from bridge_jax import onnx_export
+            onnx_export.require_converter()  # the missing extra is told before the checkpoint load too
         predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
                                              dtype=args.dtype, size_option="--height/--width",
                                              test_time=cli.given_test_time(args), options=testtime.OPTIONS)
-        exp = export_network(predictor, batch=args.batch, task=args.task)
-        out = serialize_to_file(exp, args.out)
+        if args.format == "onnx":
+            out = onnx_export.save_model(onnx_export.export_onnx(predictor, batch=args.batch, task=args.task),
+                                         args.out)
+        else:
+            out = serialize_to_file(export_network(predictor, batch=args.batch, task=args.task), args.out)
     except ImportError as e:  # jax.export serialization needs the `flatbuffers` package
+        if args.format == "onnx" and isinstance(e, onnx_export.MissingExtra):
+            return cli.report_error(e, debug=args.debug)
         return cli.report_error(ImportError(f"{e} (pip install flatbuffers)"), debug=args.debug)
     except (ValueError, OSError) as e:
         return cli.report_error(e, debug=args.debug)
     shape = [args.batch, predictor.height, predictor.width]
-    print(json.dumps({"out": str(out), "bytes": out.stat().st_size, "model": predictor.model_cfg["name"],
+    print(json.dumps({"out": str(out), "format": args.format, "bytes": out.stat().st_size,
+                      "model": predictor.model_cfg["name"],
                       "input": shape + [6], "output": f"(px0, frac0) each {shape + [2]}", "dtype": args.dtype,
                       **predictor.test_time.to_dict()}))
     return 0

@@ -128,10 +128,19 @@ def normalise_locally(grey: jax.Array, radius: int = DEFAULT_CONFIG.normalise_ra
     return centred / (jnp.sqrt(box_filter(centred * centred, radius)) + floor)
 
 
+def _pad_edge(x: jax.Array, axis: int, before: int, after: int) -> jax.Array:
+    """`x` with its first slice along `axis` repeated `before` times in front and its last `after` times behind:
+    `jnp.pad(mode="edge")` on one axis, the same values, but without the zero-size pieces jnp.pad makes for the
+    axes it does not pad (the ONNX export, `bridge_jax.onnx_export`, gets their shapes wrong)."""
+    n = x.shape[axis]
+    first = jax.lax.slice_in_dim(x, 0, 1, axis=axis)
+    last = jax.lax.slice_in_dim(x, n - 1, n, axis=axis)
+    return jnp.concatenate([first] * before + [x] + [last] * after, axis=axis)
+
+
 def gradients(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Central differences of `(N, H, W)` along W and H (one-sided half steps at the edges: edge replicated)."""
-    px = jnp.pad(x, ((0, 0), (0, 0), (1, 1)), mode="edge")
-    py = jnp.pad(x, ((0, 0), (1, 1), (0, 0)), mode="edge")
+    px, py = _pad_edge(x, 2, 1, 1), _pad_edge(x, 1, 1, 1)
     return 0.5 * (px[:, :, 2:] - px[:, :, :-2]), 0.5 * (py[:, 2:] - py[:, :-2])
 
 
@@ -203,8 +212,7 @@ _NEIGHBOURS = ((0, 1), (1, 0), (0, -1), (-1, 0))
 def _neighbour(x: jax.Array, dy: int, dx: int) -> jax.Array:
     """`(N, H, W, ...)` read at (y + dy, x + dx), edge replicated (slices, not a gather: XLA:CPU gathers are slow)."""
     h, w = x.shape[1:3]
-    pad = [(0, 0), (max(-dy, 0), max(dy, 0)), (max(-dx, 0), max(dx, 0))] + [(0, 0)] * (x.ndim - 3)
-    y = jnp.pad(x, pad, mode="edge")
+    y = _pad_edge(_pad_edge(x, 1, max(-dy, 0), max(dy, 0)), 2, max(-dx, 0), max(dx, 0))
     return y[:, max(dy, 0):max(dy, 0) + h, max(dx, 0):max(dx, 0) + w]
 
 

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
+from bridge_jax.resizing import check_task
 from bridge_jax.network import Network
 from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, component_mask, polish_maps
 from bridge_jax.testtime import TestTime
@@ -162,5 +163,31 @@ def predicted_maps(pairs, flow_rows, test_time: TestTime, network_program: Calla
     return polish_program(pairs, maps, flow_rows)
 
 
-__all__ = ["refine_maps", "symmetric_maps", "network_maps", "polish_stage", "predicted_maps", "flow_rows",
+__all__ = ["refine_maps", "symmetric_maps", "network_maps", "polish_stage", "predicted_maps", "flow_rows", "inference_function",
            "POLISH_APART"]
+
+
+def inference_function(predictor, batch: int = 1, task: str = "flow"):
+    """The jittable function every export format writes: `infer(pairs (batch, H, W, 6)) -> (px0, frac0)` at the
+    predictor's working size, params as constants, with the predictor's test-time stages (`predictor.test_time`,
+    `predicted_maps`); `task` picks the network of a separate-networks model (and for "stereo" keeps the
+    maps on image rows)."""
+    if batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {batch}")
+    check_task(task, "--task")
+    params = jax.tree.map(jnp.asarray, predictor.params)
+    rows = predictor.net.static_rows((task == "stereo",) * batch)
+    rows_flow = jnp.asarray(flow_rows([task] * batch))
+    test_time = predictor.test_time
+
+    def infer(pairs):
+        if test_time == TestTime():
+            maps = predictor.net(params, pairs, rows)
+            return maps["px"][0], maps["frac"][0]
+        network_program = lambda x: network_maps(predictor.net, params, x, rows, rows_flow,
+                                                        test_time.network_part)
+        polish_program = lambda x, maps, flows: polish_stage(x, maps, flows, test_time, predictor.polish_config)
+        px = predicted_maps(pairs, rows_flow, test_time, network_program, polish_program)
+        return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
+
+    return infer
