@@ -36,14 +36,14 @@ class Pair(NamedTuple):
     name: str
     former: int  # index into FRAMES
     latter: int  # index into FRAMES
-    is_stereo: bool
+    task: str  # "stereo" (a rectified left/right pair) or "flow" (one camera at t and t+1)
 
 
 PAIRS = (
-    Pair("stereo_t1", LEFT_T1, RIGHT_T1, True),
-    Pair("flow_left", LEFT_T, LEFT_T1, False),
-    Pair("flow_right", RIGHT_T, RIGHT_T1, False),
-    Pair("stereo_t", LEFT_T, RIGHT_T, True),
+    Pair("stereo_t1", LEFT_T1, RIGHT_T1, "stereo"),
+    Pair("flow_left", LEFT_T, LEFT_T1, "flow"),
+    Pair("flow_right", RIGHT_T, RIGHT_T1, "flow"),
+    Pair("stereo_t", LEFT_T, RIGHT_T, "stereo"),
 )
 STEREO_T1, FLOW_LEFT, FLOW_RIGHT, STEREO_T = range(4)
 
@@ -67,14 +67,15 @@ def rows_per_cycle(pairs: Sequence[int] = tuple(range(4))) -> int:
     return 2 * len(pairs)
 
 
-def row_is_stereo(pairs: Sequence[int], num_rows: int, offset: int = 0) -> tuple[bool, ...]:
-    """Which of `num_rows` consecutive pair-input rows, starting at row `offset` of the batch, are stereo pairs.
+def row_tasks(pairs: Sequence[int], num_rows: int, offset: int = 0) -> tuple[str, ...]:
+    """The task ("stereo" / "flow") of each of `num_rows` consecutive pair-input rows, starting at row `offset`
+    of the batch.
 
     Rows follow `batch_pair_inputs`: per cycle 2P rows, the P forward rows of `pairs`, then the P backward rows.
     The answer is static (it decides which network a row goes through when stereo and flow do not share one).
     """
     p = len(pairs)
-    return tuple(PAIRS[pairs[(offset + i) % (2 * p) % p]].is_stereo for i in range(num_rows))
+    return tuple(PAIRS[pairs[(offset + i) % (2 * p) % p]].task for i in range(num_rows))
 
 
 def _check_cycle(cycle, name: str, batched: bool):

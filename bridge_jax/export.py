@@ -89,6 +89,15 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _working_size(args) -> tuple[int, int] | None:
+    """(H, W) of --height/--width, a side not given being the trained size's; None when neither is given (the
+    size the card recommends, else the trained size)."""
+    if args.height is None and args.width is None:
+        return None
+    trained = inference.trained_working_size(args.checkpoint) or (inference.DEFAULT_HEIGHT, inference.DEFAULT_WIDTH)
+    return (trained[0] if args.height is None else args.height, trained[1] if args.width is None else args.width)
+
+
 @cli.entry_point
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -99,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.format == "onnx":
             from bridge_jax import onnx_export
             onnx_export.require_converter()  # the missing extra is told before the checkpoint load too
-        predictor = inference.load_predictor(args.checkpoint, height=args.height, width=args.width,
-                                             dtype=args.dtype, size_option="--height/--width",
+        predictor = inference.load_predictor(args.checkpoint, size=_working_size(args), dtype=args.dtype,
+                                             size_option="--height/--width",
                                              test_time=cli.given_test_time(args), options=testtime.OPTIONS)
         if args.format == "onnx":
             out = onnx_export.save_model(onnx_export.export_onnx(predictor, batch=args.batch, task=args.task),

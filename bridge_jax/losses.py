@@ -717,7 +717,7 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
                                        warped_bw_norm=cfg.occlusion_norm == "warped",
                                        border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
-    unmasked = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
+    unmasked = jnp.array([cyc.PAIRS[k].task == "stereo" for k in pairs])[:, None, None, None]
     if cfg.occlusion_start_step > 0 and step is not None:  # before the start step flow pairs are unmasked too
         unmasked = unmasked | (step < cfg.occlusion_start_step)
     m_f = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_f))
@@ -745,7 +745,7 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     smooth_fwd = Masked(group_mean(smooth_rows, 0, p), one)
     smooth_bwd = Masked(group_mean(smooth_rows, p, 2 * p), one)
 
-    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo]
+    st = [i for i, k in enumerate(pairs) if cyc.PAIRS[k].task == "stereo"]
     lr_fwd = lr_bwd = None
     if st:  # stereo pairs only: (D, W(D', D)) rows, then (D', W(D, D')) rows
         rows = lambda x: jnp.stack([x[i] for i in st])

@@ -74,9 +74,9 @@ class MicroBatches:
         y = jnp.swapaxes(y, 0, 1)
         return y.reshape((d * m * k,) + y.shape[3:])
 
-    def is_stereo(self, i: int) -> tuple[bool, ...]:
-        """Which rows of micro-batch `i` are stereo pairs (the same pattern on every device's shard)."""
-        return cycle.row_is_stereo(self.pairs, self.size, offset=i * self.size) * self.num_devices
+    def tasks(self, i: int) -> tuple[str, ...]:
+        """The task of each row of micro-batch `i` (the same pattern on every device's shard)."""
+        return cycle.row_tasks(self.pairs, self.size, offset=i * self.size) * self.num_devices
 
 
 # ---------------------------------------------------------------------------------------------- the phases
@@ -93,16 +93,16 @@ def split_student(cycles, rng, *, batches: MicroBatches, loss_cfg: losses.LossCo
     return batches.split(x), offsets
 
 
-def forward(params, x, rows, *, net: Network):
-    """Maps of one micro-batch; `rows` = `Network.static_rows` of its stereo pattern (static)."""
+def forward(params, x, tasks, *, net: Network):
+    """Maps of one micro-batch; `tasks` = `Network.static_tasks` of its rows (static)."""
     count_trace("micro/forward")
-    return net(params, x, rows)
+    return net(params, x, tasks)
 
 
-def forward_student(params, x, rows, *, net: Network):
+def forward_student(params, x, tasks, *, net: Network):
     """The scale-0 pixel maps of one micro-batch of the student's cropped pair inputs."""
     count_trace("micro/forward_student")
-    return net(params, x, rows)["px"][0]
+    return net(params, x, tasks)["px"][0]
 
 
 def loss_and_map_grads(map_parts, cycles, step, student_parts=(), offsets=None, *, batches: MicroBatches,
@@ -126,11 +126,11 @@ def zeros_like_params(params):
     return jax.tree.map(jnp.zeros_like, params)
 
 
-def accumulate(acc, params, x, dmaps, rows, *, net: Network, student: bool = False):
+def accumulate(acc, params, x, dmaps, tasks, *, net: Network, student: bool = False):
     """acc + the parameter gradient of one micro-batch (its forward again under `jax.vjp`, pulled back); with
     `student`, of a student micro-batch (`dmaps` = the cotangent of its scale-0 pixel maps)."""
     count_trace("micro/accumulate_student" if student else "micro/accumulate")
-    fn = (lambda p: net(p, x, rows)["px"][0]) if student else (lambda p: net(p, x, rows))
+    fn = (lambda p: net(p, x, tasks)["px"][0]) if student else (lambda p: net(p, x, tasks))
     _, vjp = jax.vjp(fn, params)
     (g,) = vjp(dmaps)
     return jax.tree.map(jnp.add, acc, g)
@@ -170,8 +170,8 @@ class MicroBatchedStep:
         self._update = jax.jit(functools.partial(update, tx=tx, schedule=schedule), donate_argnums=(0,),
                                **shard(out_shardings=(state_sharding, rep)))
 
-    def _rows(self, i: int) -> tuple[bool, ...]:
-        return self.net.static_rows(self.batches.is_stereo(i))
+    def _tasks(self, i: int) -> tuple[str, ...]:
+        return self.net.static_tasks(self.batches.tasks(i))
 
     def phases(self, state: dict, cycles) -> Iterator[tuple[str, Any]]:
         """One step, phase by phase: yields (name, output) after "split", "forward", "loss", "accumulate" and
@@ -181,17 +181,17 @@ class MicroBatchedStep:
         xs = self._split(cycles)
         xs_student, offsets = self._split_student(cycles, state.get("rng")) if self.student else ((), None)
         yield "split", (xs, xs_student) if self.student else xs
-        maps = [self._forward(params, x, self._rows(i)) for i, x in enumerate(xs)]
-        student = tuple(self._forward_student(params, x, self._rows(i)) for i, x in enumerate(xs_student))
+        maps = [self._forward(params, x, self._tasks(i)) for i, x in enumerate(xs)]
+        student = tuple(self._forward_student(params, x, self._tasks(i)) for i, x in enumerate(xs_student))
         yield "forward", (maps, student) if self.student else maps
         loss, terms, dmaps, dstudent = self._loss(tuple(maps), cycles, state.get("step"), student, offsets)
         del maps, student
         yield "loss", (loss, terms, dmaps)
         acc = self._zeros(params)
         for i, (x, dm) in enumerate(zip(xs, dmaps)):
-            acc = self._accumulate(acc, params, x, dm, self._rows(i))
+            acc = self._accumulate(acc, params, x, dm, self._tasks(i))
         for i, (x, dm) in enumerate(zip(xs_student, dstudent)):
-            acc = self._accumulate_student(acc, params, x, dm, self._rows(i))
+            acc = self._accumulate_student(acc, params, x, dm, self._tasks(i))
         yield "accumulate", acc
         yield "update", self._update(state, acc, loss, terms)
 

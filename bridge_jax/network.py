@@ -3,7 +3,7 @@
 The paper trains one network P for stereo and flow pairs (shared weights); its "without sharing weights"
 ablation has one network per task. `Network` hides the difference: with `separate=True` the params are
 `{"stereo": ..., "flow": ...}` and every input row goes through the network of its task (which rows are stereo
-is static, see `cycle.row_is_stereo`). Params stay float32; `dtype` only changes the compute dtype.
+is static, see `cycle.row_tasks`). Params stay float32; `dtype` only changes the compute dtype.
 """
 from __future__ import annotations
 
@@ -93,17 +93,18 @@ class Network:
             raise ValueError(f"conv_weight_grad must be one of {list(layers.WEIGHT_GRAD_METHODS)}, "
                              f"got {self.conv_weight_grad!r}")
 
-    def __call__(self, params, x, is_stereo: Sequence[bool] = ()):
+    def __call__(self, params, x, tasks: Sequence[str] = ()):
         """x: (N, H, W, 6) float32 pair inputs -> maps {"px": 4 x (N, h, w, 2), "frac": ...} float32.
 
-        `is_stereo` (N static bools) is read only when the networks are separate.
+        `tasks` (N static strings, "stereo" / "flow", the task of each row) is read only when the networks are
+        separate.
         """
         if not self.separate:
             return self._one(params, x)
-        is_stereo = np.asarray(is_stereo, bool)
-        if is_stereo.shape != (x.shape[0],):
-            raise ValueError(f"is_stereo has {is_stereo.shape} entries for {x.shape[0]} rows")
-        idx_s, idx_f = np.nonzero(is_stereo)[0], np.nonzero(~is_stereo)[0]
+        if len(tasks) != x.shape[0] or any(t not in ("stereo", "flow") for t in tasks):
+            raise ValueError(f"tasks must name 'stereo' or 'flow' for each of the {x.shape[0]} rows, got {tasks!r}")
+        stereo = np.array([t == "stereo" for t in tasks], bool)
+        idx_s, idx_f = np.nonzero(stereo)[0], np.nonzero(~stereo)[0]
         parts, order = [], []
         if idx_s.size:
             parts.append(self._one(params["stereo"], x[idx_s]))
@@ -130,7 +131,7 @@ class Network:
                 maps = models.apply(self.graphdef, params, x)
         return jax.tree.map(lambda m: m.astype(jnp.float32), maps)
 
-    def static_rows(self, is_stereo: Sequence[bool]) -> tuple[bool, ...]:
-        """The `is_stereo` to pass to a jitted call as a static argument: () for a shared network, which does
-        not look at it (so all row patterns share one compiled function)."""
-        return tuple(bool(s) for s in is_stereo) if self.separate else ()
+    def static_tasks(self, tasks: Sequence[str]) -> tuple[str, ...]:
+        """The `tasks` to pass to a jitted call as a static argument: () for a shared network, which does not
+        look at them (so all row patterns share one compiled function)."""
+        return tuple(str(t) for t in tasks) if self.separate else ()

@@ -93,13 +93,13 @@ def _stage_functions(predictor: inference.Predictor, batch: int, task: str) -> l
     from bridge_jax import polish, stages as test_time_stages
 
     params = jax.tree.map(jnp.asarray, predictor.params)
-    rows = predictor.net.static_rows((task == "stereo",) * batch)
+    tasks = predictor.net.static_tasks((task,) * batch)
     flow_rows = jnp.asarray(test_time_stages.flow_rows([task] * batch))
     pairs = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 6), jnp.float32)
     maps = jax.ShapeDtypeStruct((batch, predictor.height, predictor.width, 2), jnp.float32)
-    net = lambda x: predictor.net(params, x, rows * (x.shape[0] // batch))["px"][0]
+    net = lambda x: predictor.net(params, x, tasks * (x.shape[0] // batch))["px"][0]
     test_time = predictor.test_time
-    stages = [("the network", lambda x: predictor.net(params, x, rows), (pairs,))]
+    stages = [("the network", lambda x: predictor.net(params, x, tasks), (pairs,))]
     if test_time.symmetry != "none":
         stages.append((f"--symmetry {test_time.symmetry}",
                        lambda x: test_time_stages.symmetric_maps(net, x, test_time.symmetry, flow_rows), (pairs,)))

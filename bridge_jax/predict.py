@@ -333,7 +333,7 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", task: str = "flow"
 
 
 class Runner:
-    """Collects (task, index, image a, image b) jobs ("flow" or "disp") and runs them through the predictor in
+    """Collects (task, index, image a, image b) jobs (task "flow" or "stereo") and runs them through the predictor in
     fixed-size batches (`inference.Predictor.predict`): flow and disparity at each input's resolution."""
 
     def __init__(self, predictor, batch_pairs: int):
@@ -349,8 +349,7 @@ class Runner:
         if not self.jobs:
             return []
         jobs, self.jobs = self.jobs, []
-        preds = self.predictor.predict([("flow" if t == "flow" else "stereo", a, b) for t, _, a, b in jobs],
-                                       self.batch_pairs)
+        preds = self.predictor.predict([(t, a, b) for t, _, a, b in jobs], self.batch_pairs)
         return [(task, index, value) for (task, index, _, _), value in zip(jobs, preds)]
 
 
@@ -528,7 +527,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
     if source.num_pairs:  # one pair is not padded to a batch of 4: each padded row costs a full network call
         batch = min(batch, source.num_pairs)
     runner = Runner(predictor, batch)
-    pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "disp":...} for the video
+    pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "stereo":...} for the video (colour pictures)
     results: dict[tuple[str, int], np.ndarray] = {}
     n_frames = 0
     with files.staged_dir(out_dir, overwrite=overwrite) as tmp, \
@@ -563,7 +562,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
                 if prev is not None:
                     handle(runner.add("flow", index - 1, prev, left))
                 if right is not None:
-                    handle(runner.add("disp", index, left, right))
+                    handle(runner.add("stereo", index, left, right))
                 prev = left
                 n_frames += 1
                 bar.update(1)
@@ -573,7 +572,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
             if not source.stereo and n_frames < 2:
                 raise PredictError("a single frame has no optical flow: give at least 2 frames")
             if source.kind == "cycle":
-                disp_1 = bring_to_frame_t(results[("disp", 1)], results[("flow", 0)])
+                disp_1 = bring_to_frame_t(results[("stereo", 1)], results[("flow", 0)])
                 writer.disparity(0, disp_1, sub="disparity_t1_in_t")
             if write_video:
                 _flush_video(writer, pending, source.stereo, final=True)
@@ -622,13 +621,13 @@ def _flush_video(writer: Writer, pending: dict[int, dict], stereo: bool, final: 
     while pending:
         index = min(pending)
         entry = pending[index]
-        complete = "image" in entry and "flow" in entry and ("disp" in entry or not stereo)
+        complete = "image" in entry and "flow" in entry and ("stereo" in entry or not stereo)
         if not complete and not final:
             return
         blank = np.zeros_like(entry["image"])
         tiles, labels = [entry["image"], entry.get("flow", blank)], ["input", "flow"]
         if stereo:
-            tiles.append(entry.get("disp", blank))
+            tiles.append(entry.get("stereo", blank))
             labels.append("disparity")
         writer.video_frame(tiles, labels)
         del pending[index]

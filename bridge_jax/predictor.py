@@ -13,7 +13,6 @@ record; resizing runs in numpy, so new input sizes never recompile it. Parameter
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -53,18 +52,6 @@ def compile_mode_for(mode: str, num_pairs: Optional[int]) -> str:
     return "fast" if num_pairs is not None and num_pairs <= FAST_COMPILE_PAIRS else "full"
 
 
-def _fold_size(size: Optional[WorkingSize], height, width, native, max_pixels) -> WorkingSize:
-    """`size`, with the loose keywords (None = not given) folded in; the default `WorkingSize()` without any."""
-    given = {k: v for k, v in (("height", height), ("width", width), ("native", native), ("max_pixels", max_pixels))
-             if v is not None}
-    return dataclasses.replace(size or WorkingSize(), **given)
-
-
-def _fold_test_time(test_time: Optional[TestTime], refine, symmetry, polish) -> TestTime:
-    """`test_time`, with the loose keywords `refine`, `symmetry`, `polish` (None = not given) folded in."""
-    return (test_time or TestTime()).with_given({"refine": refine, "symmetry": symmetry, "polish": polish})
-
-
 class Predictor:
     """A network bound to its params, a working size and its test-time stages, numpy in and numpy out.
 
@@ -72,9 +59,9 @@ class Predictor:
       graphdef, params: from `bridge_jax.models.init` or a checkpoint. With `separate=True`, params is
         `{"stereo": ..., "flow": ...}` (two networks; stereo pairs use the first, flow pairs the second).
       size: the `WorkingSize` (default 256 x 512, the paper's); height and width are multiples of the model's
-        input multiple. `height`, `width`, `native`, `max_pixels`: the same as loose keywords (folded into it).
-      test_time: the `TestTime` stages (default: none); `refine`, `symmetry`, `polish`: the same as loose
-        keywords (folded into it). Settable later through the `test_time` attribute (each record compiles once).
+        input multiple.
+      test_time: the `TestTime` stages (default: none); settable later through the `test_time` attribute (each
+        record compiles once).
       polish_config: the polish's parameters (`polish.PolishConfig`; each config compiles once).
       dtype: compute dtype, None/"float32" or "bfloat16" (params stay float32).
       model_cfg: the model config (for the input-size multiple and for export metadata).
@@ -97,19 +84,15 @@ class Predictor:
     def __init__(self, graphdef, params, *, size: Optional[WorkingSize] = None, test_time: Optional[TestTime] = None,
                  polish_config: PolishConfig = DEFAULT_CONFIG, dtype: Any = None, model_cfg: Optional[dict] = None,
                  separate: bool = False, mesh=None, compile_mode: str = "full",
-                 executable_cache: Optional[str] = None, height: Optional[int] = None, width: Optional[int] = None,
-                 native: Optional[bool] = None, max_pixels: Optional[int] = None, refine: Optional[int] = None,
-                 symmetry: Optional[str] = None, polish: Optional[str] = None):
-        self.test_time = _fold_test_time(test_time, refine, symmetry, polish)
+                 executable_cache: Optional[str] = None):
+        self.test_time = test_time or TestTime()
         self.polish_config = polish_config
         self.executable_cache = executable_cache
         self._kept: dict[tuple, Callable] = {}  # key -> kept compiled program (`_kept_program`)
         self.model_cfg = dict(model_cfg) if model_cfg else None
         self.model_name = (model_cfg or {}).get("name", "resnet_md")
-        base = size or WorkingSize()
-        models.check_working_size(self.model_name, base.height if height is None else height,
-                                  base.width if width is None else width)
-        self.size = _fold_size(size, height, width, native, max_pixels)
+        self.size = size or WorkingSize()
+        models.check_working_size(self.model_name, self.size.height, self.size.width)
         check_separate_params(params, separate)
         self.net = Network(graphdef, separate=separate, dtype=compute_dtype(dtype))
         self.graphdef, self.separate, self.dtype = graphdef, separate, self.net.dtype
@@ -143,9 +126,9 @@ class Predictor:
                                                          compiler_options=options, **shardings)
         return fn
 
-    def _network_maps(self, params, pairs, rows, flow_rows, test_time):
+    def _network_maps(self, params, pairs, tasks, flow_rows, test_time):
         self.trace_count += 1  # Python side effect: runs once per trace
-        return stages.network_maps(self.net, params, pairs, rows, flow_rows, test_time)
+        return stages.network_maps(self.net, params, pairs, tasks, flow_rows, test_time)
 
     def with_params(self, params) -> "Predictor":
         """The same predictor (and compiled function) with other params, e.g. a training state's."""
@@ -157,8 +140,8 @@ class Predictor:
         """The compiled stages on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps (N a
         multiple of the mesh size); `tasks` the task of each row ("flow" / "stereo")."""
         flows = stages.flow_rows(tasks)
-        rows = self.net.static_rows([check_task(t) == "stereo" for t in tasks])
-        args = (self.params, pairs, rows, flows, self.test_time.network_part)
+        static = self.net.static_tasks([check_task(t) for t in tasks])
+        args = (self.params, pairs, static, flows, self.test_time.network_part)
         polish_program = self._polish_program if stages.POLISH_APART else None
         return stages.predicted_maps(pairs, flows, self.test_time, lambda x: self._network_program(args)(*args),
                                      polish_program)
@@ -180,12 +163,12 @@ class Predictor:
         """The network program (stages 1-2) for `args` (`_NETWORK_STATIC` static), kept as `_kept_program` says."""
         if self.model_cfg is None:
             return self._net
-        pairs, rows, test_time = args[1], args[2], args[4]
+        pairs, static, test_time = args[1], args[2], args[4]
         # What the network function closes over besides its arguments: the model, the compute dtype, one or two
         # networks and the compile options.
         config = {"program": "predictor", "model": self.model_cfg, "dtype": str(self.dtype),
                   "separate": self.separate, "compile_mode": self.compile_mode}
-        key = ("network", self.compile_mode, tuple(pairs.shape), str(pairs.dtype), rows, test_time)
+        key = ("network", self.compile_mode, tuple(pairs.shape), str(pairs.dtype), static, test_time)
         return self._kept_program(key, self._net, args, config, _NETWORK_STATIC)
 
     def _polish_program(self, pairs: jax.Array, maps: jax.Array, flow_rows: np.ndarray) -> jax.Array:
@@ -199,8 +182,8 @@ class Predictor:
         """`jax.stages.Lowered` of the network program for `batch` pairs of `task` (compile time, cost and memory
         analysis), with its refinement passes and symmetry averaging and without the polish (its own program)."""
         spec = jax.ShapeDtypeStruct((batch, self.height, self.width, 6), jnp.float32)
-        rows = self.net.static_rows([check_task(task) == "stereo"] * batch)
-        return self._net.lower(self.params, spec, rows, stages.flow_rows([task] * batch),
+        static = self.net.static_tasks([check_task(task)] * batch)
+        return self._net.lower(self.params, spec, static, stages.flow_rows([task] * batch),
                                self.test_time.network_part)
 
     def run_network(self, pairs: np.ndarray, tasks: str | Sequence[str] = "flow") -> np.ndarray:
@@ -315,7 +298,7 @@ class Predictor:
 
 
 _NETWORK_STATIC = (2, 4)
-"""Static positions of the network program's (params, pairs, rows, flow_rows, test_time)."""
+"""Static positions of the network program's (params, pairs, tasks, flow_rows, test_time)."""
 _POLISH_STATIC = (3, 4)
 """Static positions of the polish program's (pairs, maps, flow_rows, test_time, config)."""
 _POLISH_JIT = jax.jit(stages.polish_stage, static_argnums=_POLISH_STATIC)
@@ -381,10 +364,7 @@ def resolve_working_size(path: str | os.PathLike, choice: Any = None, option: st
 def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: TestTime | Mapping | None = None,
                    dtype: Any = None, compile_mode: str = "full", executable_cache: Optional[str] = "auto",
                    polish_config: PolishConfig = DEFAULT_CONFIG, size_option: str = "working size",
-                   options: Optional[Mapping[str, str]] = None, working_size: Any = None,
-                   height: Optional[int] = None, width: Optional[int] = None, native: bool = False,
-                   max_pixels: int = NATIVE_MAX_PIXELS, refine: Optional[int] = None,
-                   symmetry: Optional[str] = None, polish: Optional[str] = None) -> Predictor:
+                   options: Optional[Mapping[str, str]] = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
 
@@ -393,11 +373,10 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
 
     Args:
       size: a `WorkingSize`, or its command-line form (`resolve_working_size`): (H, W), "native", "trained", or
-        None = what the card recommends, else `DEFAULT_WORKING_SIZE`. `working_size` is another name for it;
-        `height`/`width` (either may be None: the trained size's), `native`, `max_pixels` the loose keywords.
+        None = what the card recommends, else `DEFAULT_WORKING_SIZE`.
       test_time: a `TestTime` as it is, or a mapping of the settings given ({"refine": 0}; None values = not
         given) applied to the card's record (`zoo.card_test_time`; the defaults without a card); None = the
-        card's. `refine`, `symmetry`, `polish`: the loose keywords, applied the same way.
+        card's.
       dtype: None = the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
       executable_cache: the folder where compiled programs are kept whole (see `Predictor`); "auto" (the
         default) = the folder of JAX's persistent compilation cache, turning on the one the commands use first
@@ -413,18 +392,8 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
     if executable_cache == "auto":
         executable_cache = compile_cache.active_dir() or compile_cache.enable("auto", option="executable_cache")
     if not isinstance(test_time, TestTime):
-        given = {**(test_time or {}), **{k: v for k, v in (("refine", refine), ("symmetry", symmetry),
-                                                          ("polish", polish)) if v is not None}}
-        test_time = zoo.card_test_time(path).with_given(given, options)
-    elif any(v is not None for v in (refine, symmetry, polish)):
-        test_time = test_time.with_given({"refine": refine, "symmetry": symmetry, "polish": polish}, options)
-    size = working_size if size is None else size
-    if size is None and (height is not None or width is not None):  # the loose keywords: one side may be given
-        trained = trained_working_size(path) or (DEFAULT_HEIGHT, DEFAULT_WIDTH)
-        size = (trained[0] if height is None else height, trained[1] if width is None else width)
-    size = resolve_working_size(path, NATIVE if size is None and native else size, size_option, max_pixels)
-    if native and not size.native:
-        size = dataclasses.replace(size, native=True)
+        test_time = zoo.card_test_time(path).with_given(test_time or {}, options)
+    size = resolve_working_size(path, size, size_option)
     # before the weights are read: a size that cannot fit is refused without allocating anything
     memory.check_fits(size_option, size.height, size.width, memory.prediction_bytes(size.height, size.width),
                       "a prediction (one pair per call)", jax.devices()[0])

@@ -129,14 +129,14 @@ def symmetric_maps(network_maps: Callable, pairs: jax.Array, symmetry: str,
     return total / count[:, None, None, None]
 
 
-def network_maps(network: Network, params, pairs: jax.Array, rows: tuple[bool, ...], flow_rows: jax.Array,
+def network_maps(network: Network, params, pairs: jax.Array, tasks: tuple[str, ...], flow_rows: jax.Array,
                  test_time: TestTime) -> jax.Array:
     """Stages 1-2: the network's scale-0 pixel map of `pairs (N, H, W, 6)`, averaged over the `symmetry` copies
-    (`symmetric_maps`), then `refine` passes (`refine_maps`). `network(params, x, rows)`: a `Network` and its
-    static rows (`Network.static_rows`, one per pair). Returns `(N, H, W, 2)`; the polish is not applied."""
+    (`symmetric_maps`), then `refine` passes (`refine_maps`). `network(params, x, tasks)`: a `Network` and its
+    static tasks (`Network.static_tasks`, one per pair). Returns `(N, H, W, 2)`; the polish is not applied."""
     n = pairs.shape[0]
-    # symmetric_maps stacks copies of the N pairs on the batch axis: separate networks need their rows repeated
-    net = lambda x: network(params, x, rows * (x.shape[0] // n))["px"][0]
+    # symmetric_maps stacks copies of the N pairs on the batch axis: separate networks need their tasks repeated
+    net = lambda x: network(params, x, tasks * (x.shape[0] // n))["px"][0]
     averaged = lambda x: symmetric_maps(net, x, test_time.symmetry, flow_rows)
     maps = averaged(pairs)
     if test_time.refine:
@@ -176,15 +176,15 @@ def inference_function(predictor, batch: int = 1, task: str = "flow"):
         raise ValueError(f"--batch must be >= 1, got {batch}")
     check_task(task, "--task")
     params = jax.tree.map(jnp.asarray, predictor.params)
-    rows = predictor.net.static_rows((task == "stereo",) * batch)
+    tasks = predictor.net.static_tasks((task,) * batch)
     rows_flow = jnp.asarray(flow_rows([task] * batch))
     test_time = predictor.test_time
 
     def infer(pairs):
         if test_time == TestTime():
-            maps = predictor.net(params, pairs, rows)
+            maps = predictor.net(params, pairs, tasks)
             return maps["px"][0], maps["frac"][0]
-        network_program = lambda x: network_maps(predictor.net, params, x, rows, rows_flow,
+        network_program = lambda x: network_maps(predictor.net, params, x, tasks, rows_flow,
                                                         test_time.network_part)
         polish_program = lambda x, maps, flows: polish_stage(x, maps, flows, test_time, predictor.polish_config)
         px = predicted_maps(pairs, rows_flow, test_time, network_program, polish_program)

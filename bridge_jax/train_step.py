@@ -158,14 +158,14 @@ def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig,
     (`loss_cfg.self_supervision > 0`) the network also runs on the cropped cycles (`student_inputs`; `rng` = the
     state's, None = centre crops) and the loss compares those maps with the full-frame ones."""
     x = cycle.batch_pair_inputs(cycles, loss_cfg.pairs)
-    is_stereo = cycle.row_is_stereo(loss_cfg.pairs, x.shape[0])
+    tasks = cycle.row_tasks(loss_cfg.pairs, x.shape[0])
     student = loss_cfg.self_supervision > 0
     if student:
         x_crop, offsets = student_inputs(cycles, loss_cfg, rng)
 
     def objective(p):
-        s = losses.Student(net(p, x_crop, is_stereo)["px"][0], offsets) if student else None
-        return losses.cycle_loss(net(p, x, is_stereo), cycles, loss_cfg, step=step, student=s)
+        s = losses.Student(net(p, x_crop, tasks)["px"][0], offsets) if student else None
+        return losses.cycle_loss(net(p, x, tasks), cycles, loss_cfg, step=step, student=s)
 
     return jax.value_and_grad(objective, has_aux=True)(params)
 

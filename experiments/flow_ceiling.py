@@ -160,7 +160,7 @@ def supervised(args) -> None:
 def matching(args) -> None:
     from bridge_jax.inference import load_predictor
 
-    pred = load_predictor(args.workdir, height=H, width=W)
+    pred = load_predictor(args.workdir, size=(H, W))
     val = render(VAL_SEED, args.val_samples)
     out = {}
     for name, replaced in (("real", False), ("b_replaced_by_a", True)):

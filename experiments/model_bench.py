@@ -59,7 +59,7 @@ def run_jax(batch: int, runs: int, warmup: int, dtype: str, quiet: float = 0.0) 
     t = time.perf_counter()
     graphdef, params = models.init(jax.random.key(0), "resnet_md")
     init_s = time.perf_counter() - t
-    pred = inference.Predictor(graphdef, params, height=256, width=512, dtype=dtype,
+    pred = inference.Predictor(graphdef, params, size=inference.WorkingSize(256, 512), dtype=dtype,
                                model_cfg=models.model_config("resnet_md"))
     rng = np.random.default_rng(1)
     a = rng.integers(0, 256, size=(batch, 256, 512, 3), dtype=np.uint8)

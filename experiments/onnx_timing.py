@@ -47,8 +47,8 @@ def main() -> None:
         height, width = card.height, card.width
         for stages in ((card.refine, card.symmetry, card.polish), (0, "none", "none")):
             refine, symmetry, polish = stages
-            pred = inference.load_predictor(name, height=height, width=width, refine=refine, symmetry=symmetry,
-                                            polish=polish, executable_cache=None)
+            pred = inference.load_predictor(name, size=(height, width), executable_cache=None,
+                                            test_time={"refine": refine, "symmetry": symmetry, "polish": polish})
             start = time.perf_counter()
             model = onnx_export.export_onnx(pred)
             convert_s = time.perf_counter() - start

@@ -126,11 +126,11 @@ def test_load_predictor_and_the_predict_line_follow_the_lineage(tiny_checkpoint,
     assert line == (f"test-time settings: working size native, refine {LONG[1]}, symmetry {LONG[2]}, polish "
                     f"{LONG[3]} (the card of 'long', which {ft} was fine-tuned from; "
                     "--working-size/--refine/--symmetry/--polish override)")
-    pred = inference.load_predictor(ft, refine=0, symmetry="none")
+    pred = inference.load_predictor(ft, test_time={"refine": 0, "symmetry": "none"})
     assert (pred.refine, pred.symmetry, pred.polish) == (0, "none", LONG[3])
     assert "refine 0 (--refine), symmetry none (--symmetry), polish" in predict.settings_line(
         ft, pred, ["--refine", "--symmetry"])
-    plain = inference.load_predictor(tiny_checkpoint, working_size=(64, 128))
+    plain = inference.load_predictor(tiny_checkpoint, size=(64, 128))
     assert predict.settings_line(tiny_checkpoint, plain, ["--working-size"]) == (
         "test-time settings: working size 64x128 (--working-size), refine 0, symmetry none, polish none "
         "(defaults; --working-size/--refine/--symmetry/--polish override)")
@@ -138,7 +138,7 @@ def test_load_predictor_and_the_predict_line_follow_the_lineage(tiny_checkpoint,
     shutil.copytree(tiny_checkpoint, chain)
     _workdir(chain, ft)
     assert f"(the card of 'long', which {chain} was fine-tuned from (through {ft});" in predict.settings_line(
-        chain, inference.load_predictor(chain, refine=0))
+        chain, inference.load_predictor(chain, test_time={"refine": 0}))
 
 
 def test_predict_cli_prints_the_settings_line(tiny_checkpoint, tmp_path, capsys):

@@ -115,8 +115,8 @@ def test_a_predictor_keeps_its_network_and_a_new_one_loads_it(fresh_compiles, tm
     pairs = rng.random((2, 64, 128, 6), dtype=np.float32)
 
     def predictor(folder, refine=1):
-        return inference.Predictor(graphdef, params, height=64, width=128, model_cfg=model, refine=refine,
-                                   executable_cache=folder)
+        return inference.Predictor(graphdef, params, size=inference.WorkingSize(64, 128), model_cfg=model,
+                                   test_time=inference.TestTime(refine=refine), executable_cache=folder)
 
     first = predictor(str(tmp_path))
     kept = first.run_network(pairs, ["stereo", "flow"])  # first: a program this process compiled before is not kept
@@ -288,7 +288,8 @@ def test_the_predict_command_finds_its_kept_network_in_a_new_process(tmp_path):
 _LIBRARY_CHILD = """
 import sys, numpy as np
 from bridge_jax import compile_cache, inference
-pred = inference.load_predictor(sys.argv[1], height=64, width=128, refine=0, symmetry="none", polish="none")
+pred = inference.load_predictor(sys.argv[1], size=(64, 128),
+                                test_time={"refine": 0, "symmetry": "none", "polish": "none"})
 a = np.random.default_rng(0).random((64, 128, 3), dtype=np.float32)
 flow = pred.predict_pair(a, a[:, ::-1])
 print("FOLDER", compile_cache.active_dir())

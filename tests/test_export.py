@@ -17,7 +17,7 @@ def tiny_ckpt(tmp_path_factory):
 
 def test_export_round_trip(tiny_ckpt, tmp_path):
     graphdef, params, _ = tiny_ckpt
-    predictor = inference.Predictor(graphdef, params, height=64, width=128,
+    predictor = inference.Predictor(graphdef, params, size=inference.WorkingSize(64, 128),
                                     model_cfg=models.model_config("resnet_md_tiny"))
     exp = export.export_network(predictor, batch=2)
     out = export.serialize_to_file(exp, tmp_path / "m.stablehlo")
@@ -31,11 +31,12 @@ def test_export_round_trip(tiny_ckpt, tmp_path):
 
 
 def test_export_with_refinement_is_the_refined_predictor(tiny_ckpt, tmp_path):
-    """A predictor with `refine=1` exports its refined maps: the artifact gives what `run_network` gives (the
+    """A predictor with `TestTime(refine=1)` exports its refined maps: the artifact gives what `run_network` gives (the
     refinement itself is checked against hand-built cases in test_refine.py), and frac0 = px0 / (W, H)."""
     graphdef, params, _ = tiny_ckpt
-    predictor = inference.Predictor(graphdef, params, height=64, width=128,
-                                    model_cfg=models.model_config("resnet_md_tiny"), refine=1)
+    predictor = inference.Predictor(graphdef, params, size=inference.WorkingSize(64, 128),
+                                    test_time=inference.TestTime(refine=1),
+                                    model_cfg=models.model_config("resnet_md_tiny"))
     loaded = export.load_exported(export.serialize_to_file(export.export_network(predictor, batch=2),
                                                            tmp_path / "r.stablehlo"))
     x = np.random.default_rng(1).uniform(size=(2, 64, 128, 6)).astype(np.float32)

@@ -191,8 +191,8 @@ def test_onnx_polish_alone_matches_jax(photo_pairs):
     import jax.numpy as jnp
     from bridge_jax import polish
     height, width = 64, 128
-    pred = inference.load_predictor("demo", height=height, width=width, refine=1, symmetry="none", polish="none",
-                                    executable_cache=None)
+    pred = inference.load_predictor("demo", size=(height, width), executable_cache=None,
+                                    test_time={"refine": 1, "symmetry": "none", "polish": "none"})
     fn = lambda pairs, maps: polish.polish_maps(pairs, maps, jnp.ones((1,), jnp.float32))
     specs = [jax.ShapeDtypeStruct((1, height, width, 6), jnp.float32),
              jax.ShapeDtypeStruct((1, height, width, 2), jnp.float32)]

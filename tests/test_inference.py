@@ -17,7 +17,7 @@ def tiny():
 
 @pytest.fixture(scope="module")
 def predictor(tiny):
-    return inference.Predictor(*tiny, height=H, width=W, model_cfg=models.model_config("resnet_md_tiny"))
+    return inference.Predictor(*tiny, size=inference.WorkingSize(H, W), model_cfg=models.model_config("resnet_md_tiny"))
 
 
 class ConstantPredictor(inference.Predictor):
@@ -105,9 +105,9 @@ def test_bad_input(predictor):
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         predictor.predict_pair(np.full((50, 60, 3), 255.0), a)
     with pytest.raises(ValueError, match="multiples of 64"):
-        inference.Predictor(predictor.graphdef, predictor.params, height=100, width=256)
+        inference.Predictor(predictor.graphdef, predictor.params, size=inference.WorkingSize(100, 256))
     with pytest.raises(ValueError, match="dtype"):
-        inference.Predictor(predictor.graphdef, predictor.params, height=H, width=W, dtype="float16")
+        inference.Predictor(predictor.graphdef, predictor.params, size=inference.WorkingSize(H, W), dtype="float16")
     with pytest.raises(ValueError, match="task"):
         predictor.predict_pair(a, a, task="disparity")
 
@@ -154,8 +154,8 @@ def test_network_output_matches_apply(predictor, tiny, rng):
 def test_load_predictor_and_bf16(tiny, tmp_path, rng):
     graphdef, params = tiny
     checkpointing.save_params(tmp_path / "ck", params, models.model_config("resnet_md_tiny"))
-    p32 = inference.load_predictor(tmp_path / "ck", height=H, width=W)
-    p16 = inference.load_predictor(tmp_path / "ck", height=H, width=W, dtype="bfloat16")
+    p32 = inference.load_predictor(tmp_path / "ck", size=(H, W))
+    p16 = inference.load_predictor(tmp_path / "ck", size=(H, W), dtype="bfloat16")
     a = rng.integers(0, 256, size=(64, 100, 3), dtype=np.uint8)
     b = rng.integers(0, 256, size=(64, 100, 3), dtype=np.uint8)
     o32, o16 = p32.predict_pair(a, b), p16.predict_pair(a, b)
@@ -179,7 +179,7 @@ def test_default_working_size_is_the_trained_size(tiny_checkpoint, tmp_path):
     assert inference.trained_working_size(d) == (64, 192)
     p = inference.load_predictor(d)
     assert (p.height, p.width) == (64, 192)
-    p = inference.load_predictor(d, height=128, width=256)
+    p = inference.load_predictor(d, size=(128, 256))
     assert (p.height, p.width) == (128, 256)
 
 
@@ -201,7 +201,7 @@ def test_native_predictor_runs_each_input_at_its_own_size(rng):
     and the maps come back in pixels of the input."""
     cfg = models.model_config("pwc_lite", head_init="kaiming_normal")
     graphdef, params = models.init(0, cfg)
-    pred = inference.Predictor(graphdef, params, height=64, width=128, model_cfg=cfg, native=True)
+    pred = inference.Predictor(graphdef, params, size=inference.WorkingSize(64, 128, native=True), model_cfg=cfg)
     assert pred.working_size(150, 200) == (128, 192)
     a = rng.integers(0, 256, size=(150, 200, 3), dtype=np.uint8)
     b = rng.integers(0, 256, size=(150, 200, 3), dtype=np.uint8)
@@ -211,7 +211,7 @@ def test_native_predictor_runs_each_input_at_its_own_size(rng):
     pairs = inference.resize_images(np.concatenate([a, b], -1).astype(np.float32)[None] / 255.0, 128, 192)
     raw = np.asarray(models.apply(graphdef, params, pairs)["px"][0])[0]
     np.testing.assert_allclose(flow, inference.flow_to_input_resolution(raw, 150, 200), rtol=1e-4, atol=1e-4)
-    fixed = inference.Predictor(graphdef, params, height=64, width=128, model_cfg=cfg)
+    fixed = inference.Predictor(graphdef, params, size=inference.WorkingSize(64, 128), model_cfg=cfg)
     assert fixed.working_size(150, 200) == (64, 128)
 
 
@@ -225,8 +225,8 @@ def test_resize_notice_names_the_native_size():
 
 
 def test_working_size_option(tiny_checkpoint):
-    assert inference.load_predictor(tiny_checkpoint, working_size="native").native
-    p = inference.load_predictor(tiny_checkpoint, working_size=(128, 192))
+    assert inference.load_predictor(tiny_checkpoint, size="native").native
+    p = inference.load_predictor(tiny_checkpoint, size=(128, 192))
     assert (p.height, p.width, p.native) == (128, 192, False)
     with pytest.raises(ValueError, match="--working-size 'huge'"):
-        inference.load_predictor(tiny_checkpoint, working_size="huge", size_option="--working-size")
+        inference.load_predictor(tiny_checkpoint, size="huge", size_option="--working-size")

@@ -19,8 +19,8 @@ def test_compile_mode_rule():
 
 
 def test_fast_compile_gives_the_same_maps(tiny_checkpoint, rng):
-    full = inference.load_predictor(tiny_checkpoint, working_size=(64, 128))
-    fast = inference.load_predictor(tiny_checkpoint, working_size=(64, 128), compile_mode="fast")
+    full = inference.load_predictor(tiny_checkpoint, size=(64, 128))
+    fast = inference.load_predictor(tiny_checkpoint, size=(64, 128), compile_mode="fast")
     assert (full.compile_mode, fast.compile_mode) == ("full", "fast")
     pairs = rng.random((1, 64, 128, 6), dtype=np.float32)
     a, b = full.run_network(pairs), fast.run_network(pairs)

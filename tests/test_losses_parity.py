@@ -144,7 +144,7 @@ def _check_two_warp(ref, prefix, s):
     per chain), reduced over the cycles and weighted as upstream, against upstream's masks, estimates and terms."""
     cfg = losses.LossConfig.upstream(two_warp="full2")
     rows = lambda key: jnp.asarray(per_cycle_rows(nhwc(ref[f"{key}_{s}"])))  # (2 cycles, 4 pairs, h, w, C)
-    stereo = np.array([pair.is_stereo for pair in cyc.PAIRS])[:, None, None, None]
+    stereo = np.array([pair.task == "stereo" for pair in cyc.PAIRS])[:, None, None, None]
     photometric = losses.PHOTOMETRIC_LOSSES[cfg.photometric]
 
     def one_cycle(former, latter, px_f, px_b, est_f, est_b, m_f, m_b):

@@ -42,7 +42,7 @@ def per_call_scale_terms(px, frac, frames, cfg: losses.LossConfig) -> losses.Sca
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
                                        warped_bw_norm=cfg.occlusion_norm == "warped",
                                        border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
-    stereo = jnp.array([cyc.PAIRS[k].is_stereo for k in pairs])[:, None, None, None]
+    stereo = jnp.array([cyc.PAIRS[k].task == "stereo" for k in pairs])[:, None, None, None]
     m_f = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_f))
     m_b = jax.lax.stop_gradient(jnp.where(stereo, 1.0, m_b))
     photometric = losses.PHOTOMETRIC_LOSSES[cfg.photometric]
@@ -50,7 +50,7 @@ def per_call_scale_terms(px, frac, frames, cfg: losses.LossConfig) -> losses.Sca
     def smooth(d, im):
         return losses.Masked(losses.smoothness_loss(d, im, beta=cfg.smoothness_edge_constant(), scale=cfg.smooth_scale,
                                                     order=cfg.smoothness_order), one)
-    st = np.array([i for i, k in enumerate(pairs) if cyc.PAIRS[k].is_stereo], int)
+    st = np.array([i for i, k in enumerate(pairs) if cyc.PAIRS[k].task == "stereo"], int)
     lr_fwd = lr_bwd = None
     if st.size:
         lr_fwd = losses.Masked(losses.lr_consistency_loss(fr_f[st], fr_b_w[st]), one)

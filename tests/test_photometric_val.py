@@ -174,7 +174,7 @@ def test_real_predictor_one_compiled_shape(tiny_checkpoint):
     every call, and the zero-motion terms do not depend on the model."""
     from bridge_jax import inference
     from bridge_jax.data import synthetic
-    pred = inference.load_predictor(tiny_checkpoint, height=64, width=128)
+    pred = inference.load_predictor(tiny_checkpoint, size=(64, 128))
     cycles = np.stack([synthetic.render_sample(s, 64, 128)["cycle"] for s in (1, 2)]).astype(np.float32) / 255
     m, panel = photometric.photometric_validation(pred, cycles, batch=4)
     assert pred.trace_count == 1                                    # 6 pairs in calls of 4 (last one padded)

@@ -1,4 +1,4 @@
-"""Test-time photometric polish (`bridge_jax.polish`, `Predictor(polish=)`, `--polish`): the filters against
+"""Test-time photometric polish (`bridge_jax.polish`, `TestTime(polish=)`, `--polish`): the filters against
 OpenCV, the local normalisation's invariances, the polish on sub-pixel translations of a smooth texture
 (flow and stereo rows), matches near and beyond b's border, a textureless region, candidate selection and the
 refinement on a hand-built bled motion boundary, and the wiring into the predictor, the export and the
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import export, inference, models, polish, zoo
+from bridge_jax.inference import TestTime, WorkingSize
 from tests.test_symmetry import check_predict_option
 
 H, W = 64, 96
@@ -182,21 +183,22 @@ def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng):
 def test_unknown_polish_is_one_clear_error():
     graphdef, params = models.init(0, "pwc_lite")
     with pytest.raises(ValueError, match=r"polish 'sharpen': expected one of none, photometric"):
-        inference.Predictor(graphdef, params, height=H, width=128, model_cfg=models.model_config("pwc_lite"),
-                            polish="sharpen")
+        inference.Predictor(graphdef, params, size=WorkingSize(H, 128), model_cfg=models.model_config("pwc_lite"),
+                            test_time=TestTime(polish="sharpen"))
 
 
 PWC = {**models.model_config("pwc_lite"), "head_init": "kaiming_normal"}  # non-zero maps from a random network
 
 
 def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path):
-    """`Predictor(polish="photometric")` = `polish_maps` on the plain predictor's (refined) maps, for a flow
+    """`TestTime(polish="photometric")` = `polish_maps` on the plain predictor's (refined) maps, for a flow
     and a stereo row in one batch, one trace of the network, in either compile mode; the exported artifact
     computes the same."""
     pwc = models.init(0, PWC)
     pairs = rng.uniform(size=(2, 64, 128, 6)).astype(np.float32)
-    plain = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1)
-    polished = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric")
+    size = WorkingSize(64, 128)
+    plain = inference.Predictor(*pwc, size=size, test_time=TestTime(refine=1), model_cfg=PWC)
+    polished = inference.Predictor(*pwc, size=size, test_time=TestTime(refine=1, polish="photometric"), model_cfg=PWC)
     rows = ["flow", "stereo"]
     want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
     got = polished.run_network(pairs, rows)
@@ -212,13 +214,13 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     polished.polish_config = polish.PolishConfig(smooth_eps=1e3)
     assert np.abs(polished.run_network(pairs, rows) - got).max() > 1e-3 and polished.trace_count == 1
     # "fast" compiles the network at optimisation level 0 and the polish, a program of its own, in full
-    fast = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, polish="photometric",
+    fast = inference.Predictor(*pwc, size=size, test_time=TestTime(refine=1, polish="photometric"), model_cfg=PWC,
                                compile_mode="fast")
-    plain_fast = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, refine=1, compile_mode="fast")
+    plain_fast = inference.Predictor(*pwc, size=size, test_time=TestTime(refine=1), model_cfg=PWC, compile_mode="fast")
     want_fast = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain_fast.run_network(pairs, rows)),
                                    jnp.asarray([1.0, 0.0]))
     np.testing.assert_allclose(fast.run_network(pairs, rows), np.asarray(want_fast), atol=5e-3)
-    one = inference.Predictor(*pwc, height=64, width=128, model_cfg=PWC, polish="photometric")
+    one = inference.Predictor(*pwc, size=size, test_time=TestTime(polish="photometric"), model_cfg=PWC)
     loaded = export.load_exported(export.serialize_to_file(export.export_network(one, batch=1), tmp_path / "p.hlo"))
     px, _ = loaded.call(pairs[:1])
     np.testing.assert_allclose(px, one.run_network(pairs[:1]), atol=5e-3)
@@ -230,7 +232,7 @@ def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
         want = zoo.info(name).get("default_polish", "none")
         assert zoo.card_test_time(name).polish == want
         assert inference.load_predictor(name).polish == want
-    assert inference.load_predictor("long", polish="none").polish == "none"
+    assert inference.load_predictor("long", test_time={"polish": "none"}).polish == "none"
     for name in ("long", "demo"):  # `bridge-zoo show` says so, for both shipped cards (both recommend it)
         assert any(line.startswith("  default polish: photometric") for line in zoo.card_lines(name)), name
     assert zoo.card_test_time(str(tmp_path)).polish == zoo.card_test_time("no-such-name").polish == "none"

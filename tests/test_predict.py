@@ -18,7 +18,7 @@ H, W = 100, 200          # input resolution, deliberately not the working size (
 
 @pytest.fixture(scope="module")
 def predictor(tiny_checkpoint):
-    return inference.load_predictor(tiny_checkpoint, height=128, width=256)
+    return inference.load_predictor(tiny_checkpoint, size=(128, 256))
 
 
 @pytest.fixture(scope="module")
@@ -294,7 +294,7 @@ def test_refine_option_runs_the_refined_network_and_says_so(tiny_checkpoint, fra
         assert _run(args + (["--refine", str(k)] if k else [])) == 0
         assert json.loads((out / "predict.json").read_text())["refine"] == k
         outs[k] = np.load(out / "flow_npy" / "a.npy")
-    want = inference.load_predictor(tiny_checkpoint, working_size=(128, 256), refine=1).predict_pair(
+    want = inference.load_predictor(tiny_checkpoint, size=(128, 256), test_time={"refine": 1}).predict_pair(
         cv2.imread(a)[..., ::-1], cv2.imread(b)[..., ::-1])
     np.testing.assert_allclose(outs[1], want, rtol=1e-5, atol=1e-5)
     assert np.abs(outs[1] - outs[0]).max() > 1e-4  # the pass changed the map
@@ -322,7 +322,7 @@ def test_a_large_input_is_decoded_at_a_reduced_size_and_written_at_its_own(tiny_
     rng = np.random.default_rng(1)
     big = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (1280, 960), interpolation=cv2.INTER_CUBIC)
     a, b = _write(tmp_path / "a.png", big), _write(tmp_path / "b.png", np.roll(big, 8, axis=1))
-    p = inference.load_predictor(tiny_checkpoint, working_size=(64, 64))
+    p = inference.load_predictor(tiny_checkpoint, size=(64, 64))
     img = predict.read_image(a, p.working_size)
     # 960x1280 at a 64x64 working size: 1/4 keeps >= 2x the working size per side (1/8 would be 120x160 < 128)
     assert img.shape == (240, 320, 3) and inference.input_size(img) == (960, 1280)

@@ -1,4 +1,4 @@
-"""Test-time iterative residual refinement (`inference.refine_maps`, `Predictor(refine=)`): the warp direction
+"""Test-time iterative residual refinement (`inference.refine_maps`, `TestTime(refine=)`): the warp direction
 and the composition rule on hand-built cases, and the predictor against a numpy pass built from its own
 unrefined network calls."""
 
@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import inference, models
+from bridge_jax.inference import TestTime, WorkingSize
 from tests.test_geometry import np_warp
 
 H, W = 64, 128
@@ -82,11 +83,11 @@ def network():
 
 
 def test_predictor_refine_matches_a_numpy_pass_over_its_own_calls(network, rng):
-    """`Predictor(refine=1)` = the unrefined predictor on (a, b), then on (a, b warped by that map in numpy),
+    """`TestTime(refine=1)` = the unrefined predictor on (a, b), then on (a, b warped by that map in numpy),
     composed in numpy: one compiled function per refine value, the same numbers as the pass done by hand."""
     cfg = models.model_config("pwc_lite")
-    plain = inference.Predictor(*network, height=H, width=W, model_cfg=cfg)
-    refined = inference.Predictor(*network, height=H, width=W, model_cfg=cfg, refine=1)
+    plain = inference.Predictor(*network, size=WorkingSize(H, W), model_cfg=cfg)
+    refined = inference.Predictor(*network, size=WorkingSize(H, W), test_time=TestTime(refine=1), model_cfg=cfg)
     # a smooth image moved by a sub-pixel shift, so the untrained network's maps are smooth and non-zero
     base = rng.uniform(size=(H // 8, W // 8, 3)).astype(np.float32)
     big = cv2.resize(base, (W + 16, H + 16), interpolation=cv2.INTER_CUBIC)
@@ -115,12 +116,13 @@ def test_predictor_refine_matches_a_numpy_pass_over_its_own_calls(network, rng):
 def test_predictor_refine_zero_is_the_plain_network(network, rng):
     cfg = models.model_config("pwc_lite")
     pairs = rng.uniform(size=(2, H, W, 6)).astype(np.float32)
-    plain = inference.Predictor(*network, height=H, width=W, model_cfg=cfg)
+    plain = inference.Predictor(*network, size=WorkingSize(H, W), model_cfg=cfg)
     np.testing.assert_array_equal(plain.run_network(pairs), inference.Predictor(
-        *network, height=H, width=W, model_cfg=cfg, refine=0).run_network(pairs))
+        *network, size=WorkingSize(H, W), test_time=TestTime(refine=0), model_cfg=cfg).run_network(pairs))
 
 
 @pytest.mark.parametrize("bad", [-1, inference.MAX_REFINE + 1, 1.5, "2", True])
 def test_refine_out_of_range_is_one_clear_error(network, bad):
     with pytest.raises(ValueError, match=r"refine .*expected a whole number of refinement passes from 0 to 8"):
-        inference.Predictor(*network, height=H, width=W, model_cfg=models.model_config("pwc_lite"), refine=bad)
+        inference.Predictor(*network, size=WorkingSize(H, W), test_time=TestTime(refine=bad),
+                            model_cfg=models.model_config("pwc_lite"))

@@ -1,4 +1,4 @@
-"""Test-time symmetry averaging (`inference.symmetric_maps`, `Predictor(symmetry=)`, `--symmetry`): the map
+"""Test-time symmetry averaging (`inference.symmetric_maps`, `TestTime(symmetry=)`, `--symmetry`): the map
 transforms on hand-built cases (an exact translation matcher, a constant stand-in network), and the predictor
 and the exported artifact against numpy averages over their own plain calls on flipped copies."""
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import export, inference, models, zoo
+from bridge_jax.inference import TestTime, WorkingSize
 from tests.test_refine import shift_matcher
 
 H, W = 64, 128
@@ -50,8 +51,8 @@ def test_copies_are_mapped_back_and_stereo_rows_keep_stereo_copies():
 def test_unknown_symmetry_is_one_clear_error():
     graphdef, params = models.init(0, "pwc_lite")
     with pytest.raises(ValueError, match=r"symmetry 'mirror': expected one of none, flips, dihedral"):
-        inference.Predictor(graphdef, params, height=H, width=W, model_cfg=models.model_config("pwc_lite"),
-                            symmetry="mirror")
+        inference.Predictor(graphdef, params, size=WorkingSize(H, W), model_cfg=models.model_config("pwc_lite"),
+                            test_time=TestTime(symmetry="mirror"))
 
 
 def _numpy_symmetric(plain: inference.Predictor, pairs: np.ndarray, stereo: bool, transposed: bool) -> np.ndarray:
@@ -83,13 +84,13 @@ def pwc():
 
 
 def test_predictor_symmetry_is_the_mean_of_its_plain_calls_on_flipped_copies(pwc, rng):
-    """`Predictor(symmetry=...)` on a batch with a flow and a stereo row = the numpy mean of the plain
+    """`TestTime(symmetry=...)` on a batch with a flow and a stereo row = the numpy mean of the plain
     predictor on the copies (stereo: as given and upside-down only); one compile per symmetry value."""
     cfg = PWC
-    plain = inference.Predictor(*pwc, height=H, width=W, model_cfg=cfg)
+    plain = inference.Predictor(*pwc, size=WorkingSize(H, W), model_cfg=cfg)
     pairs = rng.uniform(size=(2, H, W, 6)).astype(np.float32)
     for symmetry in ("flips", "dihedral"):
-        sym = inference.Predictor(*pwc, height=H, width=W, model_cfg=cfg, symmetry=symmetry)
+        sym = inference.Predictor(*pwc, size=WorkingSize(H, W), test_time=TestTime(symmetry=symmetry), model_cfg=cfg)
         got = sym.run_network(pairs, ["flow", "stereo"])
         np.testing.assert_allclose(got[0], _numpy_symmetric(plain, pairs[:1], False, symmetry == "dihedral")[0],
                                    atol=2e-5)
@@ -102,7 +103,8 @@ def test_predictor_symmetry_is_the_mean_of_its_plain_calls_on_flipped_copies(pwc
 
 def test_export_with_symmetry_is_the_symmetric_predictor(pwc, tmp_path):
     cfg = PWC
-    predictor = inference.Predictor(*pwc, height=H, width=W, model_cfg=cfg, symmetry="flips", refine=1)
+    predictor = inference.Predictor(*pwc, size=WorkingSize(H, W), test_time=TestTime(refine=1, symmetry="flips"),
+                                    model_cfg=cfg)
     loaded = export.load_exported(export.serialize_to_file(export.export_network(predictor, batch=1),
                                                            tmp_path / "s.stablehlo"))
     x = np.random.default_rng(2).uniform(size=(1, H, W, 6)).astype(np.float32)
@@ -118,7 +120,7 @@ def test_default_symmetry_comes_from_a_shipped_card_only(tmp_path):
         want = zoo.info(name).get("default_symmetry", "none")
         assert zoo.card_test_time(name).symmetry == want
         assert inference.load_predictor(name).symmetry == want
-    assert inference.load_predictor("long", symmetry="none").symmetry == "none"
+    assert inference.load_predictor("long", test_time={"symmetry": "none"}).symmetry == "none"
     assert zoo.card_test_time("long").symmetry == "flips"  # what its real-image checks chose (real_images.md)
     assert any(line.startswith("  default symmetry averaging: flips") for line in zoo.card_lines("long"))
     assert not any("symmetry" in line for line in zoo.card_lines("demo"))
@@ -145,16 +147,16 @@ def predict_pair_command(checkpoint: str, tmp_path):
 
 def check_predict_option(checkpoint: str, tmp_path, capsys, option: str, value: str, bad: str, **load_kwargs):
     """`bridge-predict --OPTION VALUE` on `predict_pair_command`'s pair writes the flow that
-    `load_predictor(checkpoint, working_size=(128, 256), OPTION=VALUE, **load_kwargs)` predicts and records VALUE
-    in predict.json; `--OPTION BAD` is one argparse error (exit 2) that writes nothing."""
+    `load_predictor(checkpoint, size=(128, 256), test_time={OPTION: VALUE}, **load_kwargs)` predicts and records
+    VALUE in predict.json; `--OPTION BAD` is one argparse error (exit 2) that writes nothing."""
     import cv2
 
     from bridge_jax import predict
     paths, out, args = predict_pair_command(checkpoint, tmp_path)
     assert predict.main(args + [f"--{option}", value]) == 0
     assert json.loads((out / "predict.json").read_text())[option] == value
-    want = inference.load_predictor(checkpoint, working_size=(128, 256), **{option: value}, **load_kwargs).predict_pair(
-        cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
+    predictor = inference.load_predictor(checkpoint, size=(128, 256), test_time={option: value}, **load_kwargs)
+    want = predictor.predict_pair(cv2.imread(paths[0])[..., ::-1], cv2.imread(paths[1])[..., ::-1])
     np.testing.assert_allclose(np.load(out / "flow_npy" / "f0.npy"), want, rtol=1e-4, atol=1e-4)
     with pytest.raises(SystemExit) as e:
         predict.main([str(tmp_path / "bad") if a == str(out) else a for a in args] + [f"--{option}", bad])

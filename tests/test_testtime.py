@@ -74,13 +74,17 @@ def test_polish_config_is_hashable_and_checked():
         polish.PolishConfig(candidate_distances=())
 
 
-def test_the_predictor_holds_both_values_and_the_old_keywords_fold_in():
+def test_the_predictor_holds_both_values_and_takes_no_loose_keywords():
     graphdef, params = models.init(0, "pwc_lite")
     cfg = models.model_config("pwc_lite")
-    p = inference.Predictor(graphdef, params, height=64, width=128, model_cfg=cfg, refine=1, polish="photometric")
+    p = inference.Predictor(graphdef, params, size=WorkingSize(64, 128), test_time=TestTime(1, "none", "photometric"),
+                            model_cfg=cfg)
     assert p.size == WorkingSize(64, 128) and p.test_time == TestTime(1, "none", "photometric")
     assert (p.height, p.width, p.native, p.refine, p.polish) == (64, 128, False, 1, "photometric")
-    q = inference.Predictor(graphdef, params, size=WorkingSize(64, 128), test_time=TestTime(1, "none", "photometric"),
-                            model_cfg=cfg)
-    assert (q.size, q.test_time) == (p.size, p.test_time)
+    for loose in ({"height": 64}, {"native": True}, {"max_pixels": 4096}, {"refine": 1}, {"polish": "photometric"}):
+        with pytest.raises(TypeError):
+            inference.Predictor(graphdef, params, model_cfg=cfg, **loose)
+    for loose in ({"working_size": (64, 128)}, {"width": 128}, {"symmetry": "flips"}):
+        with pytest.raises(TypeError):  # refused before the checkpoint is looked at
+            inference.load_predictor("no-such-checkpoint", **loose)
     assert p.settings() == {"working_size": "64x128", "refine": 1, "symmetry": "none", "polish": "photometric"}

@@ -76,12 +76,12 @@ def test_lr_schedule_matches_multisteplr():
         assert float(sched(jnp.int32(step))) == pytest.approx(lr, rel=1e-6), step
 
 
-def test_row_is_stereo_follows_pair_layout():
+def test_row_tasks_follow_pair_layout():
     pairs = (0, 1, 2, 3)
-    assert cycle.row_is_stereo(pairs, 8) == (True, False, False, True) * 2
-    assert cycle.row_is_stereo(pairs, 4, offset=6) == (False, True, True, False)
-    assert cycle.row_is_stereo((1, 2), 4) == (False,) * 4
-    assert cycle.row_is_stereo((0, 3), 4) == (True,) * 4
+    assert cycle.row_tasks(pairs, 8) == ("stereo", "flow", "flow", "stereo") * 2
+    assert cycle.row_tasks(pairs, 4, offset=6) == ("flow", "stereo", "stereo", "flow")
+    assert cycle.row_tasks((1, 2), 4) == ("flow",) * 4
+    assert cycle.row_tasks((0, 3), 4) == ("stereo",) * 4
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from bridge_jax.eval import datasets
 
 
 def test_validation_and_evaluation_differ_only_by_the_png_rounding_of_the_ground_truth(tmp_path):
-    predictor = inference.load_predictor("demo", height=64, width=128)  # any size shows it; a small one is cheap
+    predictor = inference.load_predictor("demo", size=(64, 128))  # any size shows it; a small one is cheap
     h, w, n, seed = predictor.height, predictor.width, 4, 1_000_003
     memory = datasets.synthetic_frames(n, seed, h, w)
     synthetic.write_kitti_layout(str(tmp_path / "val"), n, seed=seed, height=h, width=w)

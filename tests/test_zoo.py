@@ -114,7 +114,7 @@ def test_default_refine_comes_from_a_shipped_card_only(tmp_path):
         meta = zoo.info(name)
         assert zoo.card_test_time(name).refine == meta["default_refine"] >= 1
         assert inference.load_predictor(name).refine == meta["default_refine"]
-    assert inference.load_predictor("long", refine=0).refine == 0
+    assert inference.load_predictor("long", test_time={"refine": 0}).refine == 0
     assert zoo.card_test_time(str(tmp_path)).refine == zoo.card_test_time("no-such-name").refine == 0
 
 
@@ -137,14 +137,15 @@ def test_default_working_size_comes_from_a_shipped_card(monkeypatch):
     monkeypatch.setattr(zoo, "_shipped_info", lambda spec: {**info, "default_working_size": "192x384"})
     p = inference.load_predictor("demo")
     assert (p.height, p.width) == (192, 384)
-    p = inference.load_predictor("demo", working_size="trained")
+    p = inference.load_predictor("demo", size="trained")
     assert (p.height, p.width) == (info["height"], info["width"])
 
 
 def test_shipped_demo_beats_zero_motion_on_the_validation_cycles():
     """The shipped model, through the one predictor, on the trainer's held-out synthetic frames: flow and
     disparity well below zero motion, and the numbers recorded when it was built are reproduced."""
-    predictor = inference.load_predictor("demo", working_size="trained", refine=0, polish="none")  # as trained
+    predictor = inference.load_predictor("demo", size="trained",
+                                         test_time={"refine": 0, "polish": "none"})  # as trained
     assert (predictor.height, predictor.width) == (128, 256)  # the second phase's size
     run = setup.parse(recipe.stage_config(configs.load("demo"), "finish"), devices=jax.devices()[:1])
     res, _ = train.validate(predictor, predictor.params, train.validation_frames(run), 4, picture=False)

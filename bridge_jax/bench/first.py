@@ -169,7 +169,7 @@ def measure_first_prediction(args) -> dict:
     variant = (f"{checkpoint} working size {size}" + (f" symmetry {symmetry}" if args.symmetry else "")
                + (f" polish {polish}" if args.polish else ""))
     return dict(what="first_prediction", variant=variant, checkpoint=checkpoint, working_size=size,
-                symmetry=symmetry, polish=polish, height=PAIR_SIZE[0], width=PAIR_SIZE[1], pair_kind="flow",
+                symmetry=symmetry, polish=polish, height=PAIR_SIZE[0], width=PAIR_SIZE[1], task="flow",
                 repeats=int(args.repeats), **rec)
 
 

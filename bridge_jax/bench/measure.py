@@ -103,8 +103,8 @@ def measure_train_step(config, args, micro_batch: int) -> dict:
         plain = train_step.make_train_step(net, run.loss, tx, schedule, **_shardings(state, cycles, num_devices))
         flops = cost_flops(plain.lower(state, cycles).cost_analysis())
         x = jax.eval_shape(lambda c: cycle.batch_pair_inputs(c, run.loss.pairs), cycles)
-        rows = net.static_rows(cycle.row_is_stereo(run.loss.pairs, x.shape[0]))
-        fwd = cost_flops(jax.jit(lambda p, x: net(p, x, rows)).lower(state["params"], x).cost_analysis())
+        tasks = net.static_tasks(cycle.row_tasks(run.loss.pairs, x.shape[0]))
+        fwd = cost_flops(jax.jit(lambda p, x: net(p, x, tasks)).lower(state["params"], x).cost_analysis())
         flops_exec = flops + fwd if flops is not None and fwd is not None else None
         rec["flops_source"] = "plain step lowered-HLO cost_analysis (+ one forward for flops_executed)"
         # The first call of the micro-batched step compiles its pieces (counted by the listener).
