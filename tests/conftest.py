@@ -44,16 +44,46 @@ except (OSError, AttributeError):
     _LIBC = None
 
 
+def _release():
+    """Drop JAX's in-memory compiled programs and return the freed heap to the system."""
+    jax.clear_caches()
+    gc.collect()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)  # hand the freed heap back: the worker's peak is its leftovers plus the next test
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
     """After each test module, drop the compiled programs JAX keeps in memory: an xdist worker runs hundreds of
     tests, and their executables otherwise add up to several GB by the end of the session. A later module that
     needs one again loads it from the session's persistent compilation cache."""
     yield
-    jax.clear_caches()
-    gc.collect()
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)  # hand the freed heap back: the worker's peak is its leftovers plus the next module
+    _release()
+
+
+_RELEASE_ABOVE_BYTES = 1_500_000_000
+"""`release_after_each_test` releases once the worker holds more than this (its tests then start from at most
+this, plus their own ~1.2 GB at most): releasing after every test would recompile programs the next test reuses."""
+
+
+def _resident_bytes() -> int:
+    """The process's resident memory now (Linux), or a huge number where it cannot be read (then always release)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 1 << 62
+
+
+@pytest.fixture
+def release_after_each_test():
+    """The same release after a test of a module that asks for it (`pytestmark =
+    pytest.mark.usefixtures("release_after_each_test")`) once the worker holds more than `_RELEASE_ABOVE_BYTES`:
+    in modules whose tests each build large programs (models of every kind, whole train steps) the leftovers
+    otherwise reach 3.7 GB before the module ends."""
+    yield
+    if _resident_bytes() > _RELEASE_ABOVE_BYTES:
+        _release()
 
 
 @pytest.fixture

@@ -9,6 +9,8 @@ import pytest
 from bridge_jax import configs, losses, recipe, setup, train_step
 from tests.scenes import gt_maps, translating_cycle
 
+pytestmark = pytest.mark.usefixtures("release_after_each_test")  # see tests/conftest.py
+
 H, W = 64, 128
 cycle_loss = jax.jit(losses.cycle_loss, static_argnums=2)
 

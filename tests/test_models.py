@@ -9,6 +9,8 @@ from flax import nnx
 from bridge_jax import models
 from bridge_jax.models import layers, pwcnet, resnet_md
 
+pytestmark = pytest.mark.usefixtures("release_after_each_test")  # see tests/conftest.py
+
 # ---------------------------------------------------------------- numpy references (NHWC, float64)
 
 

@@ -8,6 +8,8 @@ from bridge_jax import models, recipe, setup
 from bridge_jax.configs import demo
 from bridge_jax.models import coordinates, pwc_lite
 
+pytestmark = pytest.mark.usefixtures("release_after_each_test")  # see tests/conftest.py
+
 TINY = {"name": "pwc_lite", "pyramid": [8, 16, 16, 16], "feature_width": 8, "estimator": [16, 16],
         "context": [16, 16], "dilations": [1, 2]}
 
