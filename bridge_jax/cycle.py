@@ -24,7 +24,7 @@ This module is the single place that knows this layout: the loss, the trainer an
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import jax.numpy as jnp
 
@@ -32,11 +32,22 @@ FRAMES = ("left_t", "right_t", "left_t1", "right_t1")
 LEFT_T, RIGHT_T, LEFT_T1, RIGHT_T1 = range(4)
 
 
+TASKS = ("flow", "stereo")
+"""What a pair is, its task: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
+
+
+def check_task(task: Any, option: str = "task") -> str:
+    """`task` if it is one of `TASKS`, else a ValueError naming `option`."""
+    if task not in TASKS:
+        raise ValueError(f"{option} must be one of {TASKS}, got {task!r}")
+    return task
+
+
 class Pair(NamedTuple):
     name: str
     former: int  # index into FRAMES
     latter: int  # index into FRAMES
-    task: str  # "stereo" (a rectified left/right pair) or "flow" (one camera at t and t+1)
+    task: str  # one of TASKS
 
 
 PAIRS = (

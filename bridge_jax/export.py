@@ -94,8 +94,8 @@ def _working_size(args) -> tuple[int, int] | None:
     size the card recommends, else the trained size)."""
     if args.height is None and args.width is None:
         return None
-    trained = inference.trained_working_size(args.checkpoint) or (inference.DEFAULT_HEIGHT, inference.DEFAULT_WIDTH)
-    return (trained[0] if args.height is None else args.height, trained[1] if args.width is None else args.width)
+    trained = inference.resolve_working_size(args.checkpoint, inference.TRAINED)
+    return (trained.height if args.height is None else args.height, trained.width if args.width is None else args.width)
 
 
 @cli.entry_point

@@ -20,11 +20,12 @@ A shipped model's card may recommend a working size and a `TestTime` (`zoo.card_
 """
 from __future__ import annotations
 
+from bridge_jax.cycle import TASKS, check_task
 from bridge_jax.polish import PolishConfig
 from bridge_jax.predictor import (COMPILE_MODES, FAST_COMPILE_PAIRS, Predictor, compile_mode_for, load_predictor,
                                   resize_notice, resolve_working_size, trained_working_size)
 from bridge_jax.resizing import (DEFAULT_HEIGHT, DEFAULT_WIDTH, DEFAULT_WORKING_SIZE, MAX_UPSAMPLING, NATIVE,
-                                 NATIVE_MAX_PIXELS, REDUCED_READ_NOTICE, TASKS, TRAINED, WorkingSize, check_task,
+                                 NATIVE_MAX_PIXELS, REDUCED_READ_NOTICE, TRAINED, WorkingSize,
                                  disparity_to_input_resolution, flow_to_input_resolution, input_size,
                                  map_to_input_resolution, minimum_input_size, native_working_size, resize_images,
                                  resize_weights_align_corners, resize_weights_antialias, to_rgb_float)

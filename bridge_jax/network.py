@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import models
+from bridge_jax.cycle import check_task
 from bridge_jax.models import layers
 
 COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
@@ -101,9 +102,9 @@ class Network:
         """
         if not self.separate:
             return self._one(params, x)
-        if len(tasks) != x.shape[0] or any(t not in ("stereo", "flow") for t in tasks):
-            raise ValueError(f"tasks must name 'stereo' or 'flow' for each of the {x.shape[0]} rows, got {tasks!r}")
-        stereo = np.array([t == "stereo" for t in tasks], bool)
+        if len(tasks) != x.shape[0]:
+            raise ValueError(f"tasks has {len(tasks)} entries for {x.shape[0]} rows")
+        stereo = np.array([check_task(t, "tasks") == "stereo" for t in tasks], bool)
         idx_s, idx_f = np.nonzero(stereo)[0], np.nonzero(~stereo)[0]
         parts, order = [], []
         if idx_s.size:

@@ -24,10 +24,11 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import checkpointing, compile_cache, executable_cache, memory, models, stages, zoo
+from bridge_jax.cycle import check_task
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig
 from bridge_jax.resizing import (DEFAULT_HEIGHT, DEFAULT_WIDTH, DEFAULT_WORKING_SIZE, NATIVE, NATIVE_MAX_PIXELS,
-                                 REDUCED_READ_NOTICE, TRAINED, WorkingSize, check_task, flow_to_input_resolution,
+                                 REDUCED_READ_NOTICE, TRAINED, WorkingSize, flow_to_input_resolution,
                                  input_size, map_to_input_resolution, minimum_input_size, native_working_size,
                                  resize_images, to_rgb_float)
 from bridge_jax.testtime import TestTime

@@ -35,17 +35,6 @@ ROW_BLOCK_PIXELS = 1 << 21
 """Maps brought to a large input's resolution are computed this many output pixels at a time (bounded memory)."""
 REDUCED_READ_NOTICE = 8.0
 """An input more than this many times its working size per side gets a notice (and is read at a reduced size)."""
-TASKS = ("flow", "stereo")
-"""What a pair is, its task: consecutive frames ("flow") or a rectified left -> right pair ("stereo")."""
-
-
-def check_task(task: Any, option: str = "task") -> str:
-    """`task` if it is one of `TASKS`, else a ValueError naming `option`."""
-    if task not in TASKS:
-        raise ValueError(f"{option} must be one of {TASKS}, got {task!r}")
-    return task
-
-
 @dataclasses.dataclass(frozen=True)
 class WorkingSize:
     """The size the network runs at: `height x width`, or with `native` each input's own (`native_working_size`,
@@ -239,7 +228,7 @@ def minimum_input_size(model_name: str) -> tuple[int, int]:
 
 
 
-__all__ = ["WorkingSize", "TASKS", "check_task", "NATIVE", "TRAINED", "DEFAULT_WORKING_SIZE", "DEFAULT_HEIGHT",
+__all__ = ["WorkingSize", "NATIVE", "TRAINED", "DEFAULT_WORKING_SIZE", "DEFAULT_HEIGHT",
            "DEFAULT_WIDTH", "NATIVE_MAX_PIXELS", "to_rgb_float", "resize_images", "flow_to_input_resolution",
            "disparity_to_input_resolution", "map_to_input_resolution", "native_working_size", "input_size",
            "minimum_input_size", "MAX_UPSAMPLING"]

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
-from bridge_jax.resizing import check_task
+from bridge_jax.cycle import check_task
 from bridge_jax.network import Network
 from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, component_mask, polish_maps
 from bridge_jax.testtime import TestTime

@@ -84,6 +84,23 @@ def test_row_tasks_follow_pair_layout():
     assert cycle.row_tasks((0, 3), 4) == ("stereo",) * 4
 
 
+def test_separate_networks_route_each_row_by_its_task():
+    """With separate networks, a "stereo" row goes through params["stereo"] and a "flow" row through
+    params["flow"], in the batch's order; a wrong count or an unknown task is one error naming `tasks`."""
+    cfg = models.model_config("resnet_md_tiny", head_init="torch")  # non-zero maps from a random network
+    graphdef, params = network.init_params(jax.random.key(0), cfg, separate=True)
+    x = jnp.asarray(np.random.default_rng(0).random((2, 64, 128, 6), dtype=np.float32))
+    both = network.Network(graphdef, separate=True)(params, x, ("flow", "stereo"))["px"][0]
+    one = network.Network(graphdef)
+    np.testing.assert_allclose(both[0], one(params["flow"], x[:1])["px"][0][0], atol=1e-5)
+    np.testing.assert_allclose(both[1], one(params["stereo"], x[1:])["px"][0][0], atol=1e-5)
+    assert np.abs(np.asarray(both[0]) - np.asarray(one(params["stereo"], x[:1])["px"][0][0])).max() > 1e-3
+    with pytest.raises(ValueError, match="tasks has 1 entries for 2 rows"):
+        network.Network(graphdef, separate=True)(params, x, ("flow",))
+    with pytest.raises(ValueError, match=r"tasks must be one of \('flow', 'stereo'\), got 'disp'"):
+        network.Network(graphdef, separate=True)(params, x, ("flow", "disp"))
+
+
 # ------------------------------------------------------------------------------------------------------
 # One tiny step per variant (compiles a step per variant: slow)
 # ------------------------------------------------------------------------------------------------------
