@@ -5,6 +5,7 @@
     flow = pred.predict_pair(frame_t, frame_t1)                     # (h, w, 2) pixels, uint8 or float images
     disp = pred.predict_pair(left, right, task="stereo")            # (h, w) disparity in pixels
     out = pred.predict_cycle(left_t, right_t, left_t1, right_t1)   # disp_t, disp_t1 (h, w), flow (h, w, 2)
+    flow, conf, occ = pred.predict_pair(frame_t, frame_t1, confidence=True, occlusion=True)   # + (h, w) maps
 
 What this module gathers lives in one file per job:
 
@@ -13,7 +14,8 @@ What this module gathers lives in one file per job:
 * `bridge_jax.testtime`: the one test-time record `TestTime(refine, symmetry, polish)`;
 * `bridge_jax.stages`: the test-time stages and their one composition (`predicted_maps`), which both
   `Predictor` and `bridge_jax.export` run;
-* `bridge_jax.predictor`: `Predictor` and `load_predictor`.
+* `bridge_jax.predictor`: `Predictor` and `load_predictor`;
+* `bridge_jax.confidence`: confidence and occlusion maps from the forward-backward and left-right checks.
 
 A shipped model's card may recommend a working size and a `TestTime` (`zoo.card_working_size`,
 `zoo.card_test_time`); `load_predictor` uses them unless told otherwise.

@@ -49,7 +49,7 @@ __all__ = [
     "OUTLIER_PX", "OUTLIER_REL", "MIN_DEPTH", "MAX_DEPTH", "MetricAccumulator",
     "endpoint_error", "outliers", "flow_sums", "disparity_sums", "scene_flow_sums", "depth_sums",
     "disparity_to_depth", "finalize", "flow_metrics", "disparity_metrics", "depth_metrics",
-    "scene_flow_metrics", "garg_crop_mask",
+    "scene_flow_metrics", "garg_crop_mask", "SPARSIFICATION_FRACTIONS", "sparsification", "mask_scores",
 ]
 
 
@@ -331,3 +331,76 @@ def depth_metrics(pred_depth, gt_depth, mask) -> dict[str, float]:
 def scene_flow_metrics(d1, d2, fl, *, suffix: str = "all") -> dict[str, float]:
     """:func:`scene_flow_sums` reduced for one image (SF %)."""
     return finalize(scene_flow_sums(d1, d2, fl, suffix=suffix))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Sparsification: does a confidence map rank the errors?
+
+SPARSIFICATION_FRACTIONS = tuple(i / 20 for i in range(20))
+"""Fractions of the pixels removed, least confident first, at which a sparsification curve is read (0, 5 %, ...,
+95 %)."""
+
+
+def sparsification(errors: np.ndarray, confidence: np.ndarray, mask: Optional[np.ndarray] = None,
+                   fractions=SPARSIFICATION_FRACTIONS) -> dict:
+    """The sparsification curve of a confidence map (Ilg et al. 2018, "Uncertainty estimates and multi-hypotheses
+    networks for optical flow"): the mean error of the pixels left after removing a fraction of them, the least
+    confident first, beside the oracle's (the largest errors first).
+
+    Args:
+      errors: per-pixel errors (end-point error, or absolute disparity error), any shape.
+      confidence: the same shape; higher = more trusted. Ties are broken by the pixel order (stable sort).
+      mask: optional bool, the pixels with ground truth (default: all).
+      fractions: removed fractions, each in [0, 1).
+    Returns:
+      {"fractions": list, "curve": list (mean error of what is left, at each fraction), "oracle": list,
+       "mean": mean error of all pixels, "ause": area between the curve and the oracle's over the fractions
+       (trapezoids, in the errors' unit), "ause_relative": the same with both curves divided by "mean",
+       "top_half_ratio": mean error of the 50 % most confident pixels / "mean"}; NaN values when no pixel
+       has ground truth.
+    """
+    err = np.asarray(errors, np.float64).reshape(-1)
+    conf = np.asarray(confidence, np.float64).reshape(-1)
+    if err.shape != conf.shape:
+        raise ValueError(f"errors and confidence differ in size: {np.shape(errors)} and {np.shape(confidence)}")
+    if mask is not None:
+        keep = np.asarray(mask, bool).reshape(-1)
+        err, conf = err[keep], conf[keep]
+    fractions = [float(f) for f in fractions]
+    n = err.size
+    if n == 0:
+        nan = float("nan")
+        return {"fractions": fractions, "curve": [nan] * len(fractions), "oracle": [nan] * len(fractions),
+                "mean": nan, "ause": nan, "ause_relative": nan, "top_half_ratio": nan}
+
+    def kept_means(order: np.ndarray, at: list[float]) -> list[float]:
+        # order: most trusted first; keep the first ceil((1 - f) * n) pixels (at least one)
+        cums = np.cumsum(err[order])
+        return [float(cums[max(1, int(np.ceil((1.0 - f) * n))) - 1] / max(1, int(np.ceil((1.0 - f) * n))))
+                for f in at]
+
+    by_conf = np.argsort(-conf, kind="stable")
+    by_err = np.argsort(err, kind="stable")
+    curve, oracle = kept_means(by_conf, fractions), kept_means(by_err, fractions)
+    mean = float(err.mean())
+    gap = np.asarray(curve) - np.asarray(oracle)
+    ause = float(np.trapezoid(gap, fractions)) if len(fractions) > 1 else 0.0
+    half = kept_means(by_conf, [0.5])[0]
+    return {"fractions": fractions, "curve": curve, "oracle": oracle, "mean": mean, "ause": ause,
+            "ause_relative": ause / mean if mean > 0 else float("nan"),
+            "top_half_ratio": half / mean if mean > 0 else float("nan")}
+
+
+def mask_scores(predicted: np.ndarray, truth: np.ndarray, valid: Optional[np.ndarray] = None) -> dict:
+    """{"precision", "recall", "f1"} (fractions) of a predicted bool mask against a true one over `valid` pixels
+    (default all); NaN where a ratio has no pixel to count."""
+    pred = np.asarray(predicted, bool)
+    true = np.asarray(truth, bool)
+    if valid is not None:
+        keep = np.asarray(valid, bool)
+        pred, true = pred[keep], true[keep]
+    tp = float(np.sum(pred & true))
+    precision = tp / float(pred.sum()) if pred.sum() else float("nan")
+    recall = tp / float(true.sum()) if true.sum() else float("nan")
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else float("nan")
+    return {"precision": precision, "recall": recall, "f1": f1}

@@ -2,6 +2,8 @@
 
     # optical flow between two frames (or --task stereo for a rectified left/right pair)
     bridge-predict --checkpoint demo frame0.png frame1.png --out out/
+    # with each map's confidence (1 = trusted) and occlusion mask, from the model's own consistency checks
+    bridge-predict --checkpoint long frame0.png frame1.png --out out/ --confidence --raw npy
     # a stereo-video cycle: left_t right_t left_t1 right_t1 → disparity at t and t+1, flow, depth
     bridge-predict --checkpoint demo lt.png rt.png lt1.png rt1.png --out out/ --focal 721 --baseline 0.54
     # a folder of frames (mono: flow between consecutive frames; with left/ and right/ sub-folders: stereo video),
@@ -26,6 +28,10 @@ for a cycle, ``<stem>`` of frame t is the stem of left_t, of frame t+1 the stem 
       <folder>_npy/<stem>.npy     --raw npy: float32 pixels (depth_npy/: metres)
       flow_flo/<stem>.flo         --raw flo: Middlebury .flo, pixels (`bridge_jax.flowio`)
       <folder>_pfm/<stem>.pfm     --raw pfm: disparity (pixels) / depth (metres) as PFM (disparity_pfm/, depth_pfm/)
+      flow_confidence/<stem>.png  --confidence: each map's confidence, 1 = trusted (key: legend_confidence.png);
+                                  disparity_confidence/ likewise; float32 arrays in *_confidence_npy/ (--raw npy)
+      flow_occlusion/<stem>.png   --confidence: white = no visible match in the other image (occluded or out of
+                                  view); disparity_occlusion/ likewise; bool arrays in *_occlusion_npy/ (--raw npy)
       video.mp4                   video input: input | flow [| disparity] per frame
       predict.json                the run; "mapping": for each frame index with outputs its "stem", "inputs"
                                   (the input paths, or video and frame) and "flow_to" (the next frame's inputs)
@@ -59,8 +65,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from bridge_jax import (cli, compile_cache, console, files, flowio, inference, metrics, resizing, testtime, visualize,
-                        zoo)
+from bridge_jax import (cli, compile_cache, confidence, console, files, flowio, inference, metrics, resizing, testtime,
+                        visualize, zoo)
 from bridge_jax.data import folders, kitti, videos
 from bridge_jax.eval.datasets import Frame, kitti_specs
 from bridge_jax.eval.methods import ModelMethod, bring_to_frame_t
@@ -334,23 +340,31 @@ def open_inputs(inputs: Sequence[str], *, mode: str = "auto", task: str = "flow"
 
 class Runner:
     """Collects (task, index, image a, image b) jobs (task "flow" or "stereo") and runs them through the predictor in
-    fixed-size batches (`inference.Predictor.predict`): flow and disparity at each input's resolution."""
+    fixed-size batches (`inference.Predictor.predict`): flow and disparity at each input's resolution, with
+    `confidence` also their confidence and occlusion maps."""
 
-    def __init__(self, predictor, batch_pairs: int):
+    def __init__(self, predictor, batch_pairs: int, confidence: bool = False):
         self.predictor = predictor
         self.batch_pairs = max(1, int(batch_pairs))
+        self.confidence = confidence
         self.jobs: list[tuple[str, int, np.ndarray, np.ndarray]] = []
 
-    def add(self, task: str, index: int, a: np.ndarray, b: np.ndarray) -> list[tuple[str, int, np.ndarray]]:
+    def add(self, task: str, index: int, a: np.ndarray, b: np.ndarray) -> list[tuple]:
         self.jobs.append((task, index, a, b))
         return self.run() if len(self.jobs) >= self.batch_pairs else []
 
-    def run(self) -> list[tuple[str, int, np.ndarray]]:
+    def run(self) -> list[tuple]:
+        """(task, index, value, checked) of the jobs so far: `checked` = (confidence, occlusion) with
+        `confidence`, else None."""
         if not self.jobs:
             return []
         jobs, self.jobs = self.jobs, []
-        preds = self.predictor.predict([(t, a, b) for t, _, a, b in jobs], self.batch_pairs)
-        return [(task, index, value) for (task, index, _, _), value in zip(jobs, preds)]
+        # without confidence any object with predict(jobs, batch) serves (the keyword is passed only when asked)
+        preds = self.predictor.predict([(t, a, b) for t, _, a, b in jobs], self.batch_pairs,
+                                       **({"confidence": True} if self.confidence else {}))
+        if self.confidence:
+            return [(task, index, p[0], p[1:]) for (task, index, _, _), p in zip(jobs, preds)]
+        return [(task, index, value, None) for (task, index, _, _), value in zip(jobs, preds)]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -478,6 +492,19 @@ class Writer:
             self.counts["depth"] = self.counts.get("depth", 0) + 1
         return color
 
+    def checked(self, index: int, confidence: np.ndarray, occlusion: np.ndarray, sub: str) -> None:
+        """The confidence picture (`<sub>_confidence/`, legend_confidence.png) and occlusion mask
+        (`<sub>_occlusion/`, white = occluded) of frame `index`'s map `sub` ("flow" / "disparity"), and with
+        --raw npy their arrays (float32 in [0, 1] / bool, in `*_npy/`)."""
+        self._save(f"{sub}_confidence", index, ".png", visualize.write_image,
+                   _by_rows(visualize.confidence_to_color, confidence))
+        self._save(f"{sub}_occlusion", index, ".png", files.imwrite, visualize.occlusion_to_image(occlusion))
+        if "npy" in self.raw:
+            self._save(f"{sub}_confidence_npy", index, ".npy", np.save, np.asarray(confidence, np.float32))
+            self._save(f"{sub}_occlusion_npy", index, ".npy", np.save, np.asarray(occlusion, bool))
+        for kind in ("confidence", "occlusion"):
+            self.counts[f"{sub}_{kind}"] = self.counts.get(f"{sub}_{kind}", 0) + 1
+
     def video_frame(self, tiles: list[np.ndarray], labels: list[str]) -> None:
         img = visualize.panel(tiles, labels)
         if self.video is None:
@@ -496,6 +523,9 @@ class Writer:
         if self.max_disp is not None:
             save_file(os.path.join(self.root, "legend_disparity.png"), visualize.write_image,
                       visualize.colorbar(0.0, self.max_disp, "magma", unit="px", label="disparity"))
+        if any(k.endswith("_confidence") for k in self.counts):
+            save_file(os.path.join(self.root, "legend_confidence.png"), visualize.write_image,
+                      visualize.colorbar(0.0, 1.0, visualize.CONFIDENCE_COLORMAP, unit="", label="confidence"))
         if self.counts.get("depth"):
             save_file(os.path.join(self.root, "legend_depth.png"), visualize.write_image,
                       visualize.colorbar(2.0, 80.0, "magma", unit="m", label="depth", inverse=True))
@@ -513,12 +543,13 @@ def _progress(total: Optional[int], enabled: bool, desc: str):
 def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool = False, batch: int = 4,
                    raw: Sequence[str] = ("png",), max_flow: Optional[float] = None, max_disp: Optional[float] = None,
                    focal: Optional[float] = None, baseline: Optional[float] = None, write_video: Optional[bool] = None,
-                   progress: bool = True, info: Optional[dict] = None) -> dict:
+                   progress: bool = True, info: Optional[dict] = None, confidence: bool = False) -> dict:
     """Run the predictor over a frame stream and write everything into ``out_dir`` (atomically).
 
     Flow is predicted between consecutive left frames (t → t+1), disparity for every stereo frame; for a cycle
     also the t+1 disparity brought into frame t (``disparity_t1_in_t/``). Returns the run description that is
-    also written to ``predict.json``.
+    also written to ``predict.json``. With ``confidence``, each flow and disparity also gets its confidence
+    picture and occlusion mask (`Writer.checked`, `inference.Predictor.predict(..., confidence=True)`).
     """
     write_video = source.kind == "video" if write_video is None else write_video
     if write_video and not files.opencv_can_open(os.path.abspath(out_dir)):  # the staging folder is a sibling
@@ -526,7 +557,7 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
                            "whose path is not valid UTF-8 (rename it, or --no-video)")
     if source.num_pairs:  # one pair is not padded to a batch of 4: each padded row costs a full network call
         batch = min(batch, source.num_pairs)
-    runner = Runner(predictor, batch)
+    runner = Runner(predictor, batch, confidence)
     pending: dict[int, dict] = {}          # frame index -> {"image":..., "flow":..., "stereo":...} for the video (colour pictures)
     results: dict[tuple[str, int], np.ndarray] = {}
     n_frames = 0
@@ -536,8 +567,10 @@ def predict_source(predictor, source: Source, out_dir: str, *, overwrite: bool =
                         video_fps=source.fps, name=source.name)
 
         def handle(outputs):
-            for task, index, value in outputs:
+            for task, index, value, checked in outputs:
                 color = writer.flow(index, value) if task == "flow" else writer.disparity(index, value)
+                if checked is not None:
+                    writer.checked(index, *checked, sub="flow" if task == "flow" else "disparity")
                 if source.kind == "cycle":
                     results[(task, index)] = value
                 if write_video:
@@ -713,6 +746,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="raw values besides the pictures, a comma list: png (KITTI 16-bit, *_kitti/), npy "
                         "(*_npy/), flo (flow, flow_flo/), pfm (disparity and depth, *_pfm/), or none; "
                         "e.g. png,flo,pfm")
+    p.add_argument("--confidence", action="store_true",
+                   help="also write each map's confidence (flow_confidence/, disparity_confidence/: 1 = trusted; "
+                        "legend_confidence.png) and occlusion mask (flow_occlusion/, disparity_occlusion/: white = "
+                        "no visible match in the other image), from the forward-backward / left-right check; one "
+                        "more prediction per pair; with --raw npy also their arrays (*_npy/)")
+    p.add_argument("--confidence-check", default=None, choices=confidence.CHECK_MODES,
+                   help="with --confidence: what the backward maps of the check run with: network (one plain network "
+                        "call per pair, the default) or same (the prediction's own --refine/--symmetry/--polish "
+                        "stages: twice the cost, sharper occlusion masks)")
     p.add_argument("--max-flow", type=float, default=None,
                    help="flow colour-wheel radius in px (default: 99th percentile of the first flow)")
     p.add_argument("--max-disp", type=float, default=None,
@@ -799,17 +841,28 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise PredictError("--kitti-submission needs --data-dir")
             if args.inputs:
                 raise PredictError("--kitti-submission takes no INPUTS (it reads --data-dir)")
+            if args.confidence:
+                raise PredictError("--confidence does not apply to --kitti-submission (the benchmark takes the maps "
+                                   "only)")
             predictor = predictor_from_args(args, num_pairs=None)
             desc = kitti_submission(predictor, args.data_dir, args.out, split=args.split, year=args.kitti_year,
                                     overwrite=args.overwrite, batch=args.batch, progress=not args.no_progress)
         else:
+            if args.confidence_check and not args.confidence:
+                raise PredictError("--confidence-check goes with --confidence")
             source = open_inputs(args.inputs, mode=args.mode, task=args.task,
                                  stereo_video=args.stereo_video)
             predictor = predictor_from_args(args, num_pairs=source.num_pairs)
+            checked = {}
+            if args.confidence:
+                checked = {"confidence_check": args.confidence_check or confidence.DEFAULT_CHECK}
+                predictor.check = confidence.check_record(checked["confidence_check"], predictor.test_time,
+                                                          "--confidence-check")
             desc = predict_source(predictor, source, args.out, overwrite=args.overwrite, batch=args.batch, raw=raw,
                                   max_flow=args.max_flow, max_disp=args.max_disp, focal=args.focal,
                                   baseline=args.baseline, write_video=args.video, progress=not args.no_progress,
-                                  info={"checkpoint": args.checkpoint, **predictor.test_time.to_dict()})
+                                  info={"checkpoint": args.checkpoint, **predictor.test_time.to_dict(), **checked},
+                                  confidence=args.confidence)
     except (ValueError, OSError) as e:  # PredictError, EvaluationError, CorruptImageError: one line naming the path
         return cli.report_error(e, debug=args.debug)
     print(json.dumps({k: v for k, v in desc.items() if k != "mapping"}, indent=1))

@@ -24,6 +24,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from bridge_jax import checkpointing, compile_cache, executable_cache, memory, models, stages, zoo
+from bridge_jax import confidence as checks
 from bridge_jax.cycle import check_task
 from bridge_jax.network import Network, check_separate_params, compute_dtype
 from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig
@@ -75,10 +76,13 @@ class Predictor:
         it without tracing or lowering; None (default) = off. Needs `model_cfg`; one device only.
     Attributes:
       trace_count: how many times the network function was traced (== compiled) so far.
+      check: the `TestTime` stages the backward maps of a confidence check run with (`predict(...,
+        confidence=True)`); None (default) = `confidence.default_check(test_time)`.
     """
 
     size = WorkingSize()
     test_time = TestTime()
+    check: Optional[TestTime] = None
     polish_config = DEFAULT_CONFIG
     model_name = "resnet_md"
 
@@ -258,40 +262,119 @@ class Predictor:
                     out[i] = m
         return out  # type: ignore[return-value]
 
-    def predict(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
+    def predict(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None, *,
+                confidence: bool = False) -> list:
         """Predictions of `jobs` = [(task, image a, image b), ...] at each pair's input size: flow `(h, w, 2)`
         for "flow" jobs, disparity `(h, w)` for "stereo" jobs (`resizing.map_to_input_resolution`); `batch` as
-        in `working_maps`."""
-        maps = self.working_maps(jobs, batch)
-        return [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
+        in `working_maps`.
 
-    def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow") -> np.ndarray:
+        With `confidence`, each job's entry is `(prediction, confidence (h, w) float32 in [0, 1], occlusion
+        (h, w) bool)` from the consistency check of `bridge_jax.confidence` (forward-backward for flow,
+        left-right for disparity): the jobs' backward maps are predicted too, with the stages of `check`
+        (`confidence.default_check` of `test_time` when None), in the same batches when those are the same."""
+        if not confidence:
+            maps = self.working_maps(jobs, batch)
+            return [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
+        jobs = [(check_task(task), a, b) for task, a, b in jobs]
+        if (self.check or checks.default_check(self.test_time)) == self.test_time:
+            maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in jobs], batch)  # shared batches
+            return self.checked_predictions(jobs, maps[:len(jobs)], maps[len(jobs):])
+        return self.checked_predictions(jobs, self.working_maps(jobs, batch), self.backward_maps(jobs, batch))
+
+    def backward_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
+        """Working-size maps of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
+        `check` (`confidence.default_check(test_time)` when None); `batch` as in `working_maps`."""
+        reverse = [checks.reverse_job(check_task(task), a, b) for task, a, b in jobs]
+        own = self.test_time
+        self.test_time = self.check or checks.default_check(own)
+        try:
+            return self.working_maps(reverse, batch)
+        finally:
+            self.test_time = own
+
+    def checked_predictions(self, jobs: Sequence[tuple[str, Any, Any]], forward: Sequence[np.ndarray],
+                            backward: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(prediction, confidence, occlusion) at each job's input size from its working-size `forward` map
+        (`working_maps`) and the map of its reverse pair (`backward_maps`, run with `check`), by
+        `confidence.consistency_score` and `confidence.edge_score`, the occlusion at the threshold of the
+        check's mode (`confidence.check_mode`)."""
+        mode = checks.check_mode(self.check or checks.default_check(self.test_time), self.test_time)
+        out = []
+        for (task, a, _), fw, bw in zip(jobs, forward, backward):
+            if check_task(task) == "stereo":
+                fw = fw * np.array([1.0, 0.0], np.float32)  # a stereo match stays on its row
+            score, out_of_view = checks.consistency_score(fw[None], checks.backward_map(task, bw)[None])
+            edge = checks.edge_score(fw[None])
+            h, w = input_size(a)
+            conf, occ = checks.to_input_resolution(np.asarray(score[0]), np.asarray(out_of_view[0]), h, w,
+                                                   np.asarray(edge[0]), checks.OCCLUSION_THRESHOLD[mode])
+            out.append((map_to_input_resolution(task, fw, h, w), conf, occ))
+        return out
+
+    def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow", *, confidence: bool = False,
+                      occlusion: bool = False):
         """N pairs (sequences or `(N, h, w, C)` arrays of same-size images) -> predictions at the input
         resolution, by the task's rule (`map_to_input_resolution`): flow `(N, h, w, 2)` float32 pixels for
-        "flow" pairs, disparity `(N, h, w)` float32 pixels for "stereo" pairs (as `predict` gives them)."""
+        "flow" pairs, disparity `(N, h, w)` float32 pixels for "stereo" pairs (as `predict` gives them).
+
+        With `confidence` and/or `occlusion`: a tuple (predictions, [confidence `(N, h, w)` float32 in [0, 1],
+        1 = trusted], [occlusion `(N, h, w)` bool, True = no visible match in the other image]), in that order
+        (`predict(..., confidence=True)`)."""
+        if confidence or occlusion:
+            if len(images_a) != len(images_b):
+                raise ValueError(f"need the same number of first and second images, got {len(images_a)} "
+                                 f"and {len(images_b)}")
+            rows = self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a) or None,
+                                confidence=True)
+            if not rows:
+                raise ValueError("need at least one pair")
+            out = (np.stack([r[0] for r in rows]),)
+            if confidence:
+                out += (np.stack([r[1] for r in rows]),)
+            if occlusion:
+                out += (np.stack([r[2] for r in rows]),)
+            return out
         pairs, (h, w) = self.prepare(images_a, images_b)
         maps = self.run_network(pairs, check_task(task))
         if task == "flow":
             return flow_to_input_resolution(maps, h, w)
         return np.stack([map_to_input_resolution(task, m, h, w) for m in maps])
 
-    def predict_pair(self, image_a: Any, image_b: Any, task: str = "flow") -> np.ndarray:
+    def predict_pair(self, image_a: Any, image_b: Any, task: str = "flow", *, confidence: bool = False,
+                     occlusion: bool = False):
         """The prediction of one pair at the input resolution: flow `(h, w, 2)` from `image_a` to `image_b`
         ("flow"), or the disparity `(h, w)` of a left image `image_a` against its right image `image_b`
-        ("stereo"); float32 pixels of the input resolution."""
-        return self.predict_pairs([image_a], [image_b], task)[0]
+        ("stereo"); float32 pixels of the input resolution.
 
-    def predict_cycle(self, left_t: Any, right_t: Any, left_t1: Any, right_t1: Any) -> dict[str, np.ndarray]:
+        With `confidence` and/or `occlusion`: `(map, [confidence], [occlusion])`, each `(h, w)` at the input
+        resolution: confidence float32 in [0, 1] (1 = trusted), occlusion bool (True = no visible match in
+        `image_b`), from the forward-backward (flow) or left-right (stereo) check (`bridge_jax.confidence`)."""
+        out = self.predict_pairs([image_a], [image_b], task, confidence=confidence, occlusion=occlusion)
+        return tuple(x[0] for x in out) if isinstance(out, tuple) else out[0]
+
+    def predict_cycle(self, left_t: Any, right_t: Any, left_t1: Any, right_t1: Any, *, confidence: bool = False,
+                      occlusion: bool = False) -> dict[str, np.ndarray]:
         """Disparity at t and t+1 and left-camera optical flow t -> t+1 for two stereo frames.
 
         Returns:
           {"disp_t": (h, w), "disp_t1": (h, w)} = disparity of left_t / left_t1 (pixels, >= 0 for a sensible
           model), {"flow": (h, w, 2)} = flow left_t -> left_t1 in pixels; as `evaluate` and `predict` compute
-          them.
+          them. With `confidence`: also "conf_disp_t", "conf_disp_t1", "conf_flow" (float32 in [0, 1], 1 =
+          trusted); with `occlusion`: "occ_disp_t", "occ_disp_t1", "occ_flow" (bool, True = no visible match
+          in the other image), each `(h, w)` in the frame of the map it belongs to (`predict_pair`).
         """
-        disp_t, disp_t1, flow = self.predict([("stereo", left_t, right_t), ("stereo", left_t1, right_t1),
-                                              ("flow", left_t, left_t1)])
-        return {"disp_t": disp_t, "disp_t1": disp_t1, "flow": flow}
+        jobs = [("stereo", left_t, right_t), ("stereo", left_t1, right_t1), ("flow", left_t, left_t1)]
+        keys = ("disp_t", "disp_t1", "flow")
+        if not (confidence or occlusion):
+            return dict(zip(keys, self.predict(jobs)))
+        out = {}
+        for key, (value, conf, occ) in zip(keys, self.predict(jobs, confidence=True)):
+            out[key] = value
+            if confidence:
+                out[f"conf_{key}"] = conf
+            if occlusion:
+                out[f"occ_{key}"] = occ
+        return out
 
     def settings(self) -> dict:
         """{"working_size": "native" | "HxW", "refine", "symmetry", "polish"}: what info files record."""

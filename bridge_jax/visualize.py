@@ -201,6 +201,28 @@ def depth_to_color(depth: np.ndarray, vmin: float = 2.0, vmax: float = 80.0,
     return _apply_colormap(t, ok, colormap)
 
 
+CONFIDENCE_COLORMAP = "viridis"
+"""Colormap of confidence pictures (`confidence_to_color`): dark blue = 0 (not trusted), yellow = 1 (trusted)."""
+
+
+def confidence_to_color(confidence: np.ndarray, colormap: str = CONFIDENCE_COLORMAP) -> np.ndarray:
+    """Colour-coded confidence ``(H, W)`` in [0, 1] -> ``(H, W, 3)`` uint8 RGB; legend:
+    ``colorbar(0, 1, CONFIDENCE_COLORMAP, unit="", label="confidence")``."""
+    conf = np.asarray(confidence, np.float64)
+    if conf.ndim != 2:
+        raise ValueError(f"confidence must be (H, W), got {conf.shape}")
+    return _apply_colormap(conf, np.isfinite(conf), colormap)
+
+
+def occlusion_to_image(occlusion: np.ndarray) -> np.ndarray:
+    """An occlusion mask ``(H, W)`` bool -> ``(H, W)`` uint8 picture: 255 (white) = occluded (no visible match
+    in the other image), 0 (black) = matched; lossless, so the PNG is also the raw mask."""
+    occ = np.asarray(occlusion)
+    if occ.ndim != 2:
+        raise ValueError(f"occlusion must be (H, W), got {occ.shape}")
+    return np.where(occ.astype(bool), 255, 0).astype(np.uint8)
+
+
 def _inverse_position(value: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
     """Position in [0, 1] of ``value`` on an inverse scale: vmax → 0, vmin → 1."""
     value = np.clip(value, vmin, vmax)

@@ -119,6 +119,9 @@ def test_commands_parse_with_their_own_clis(tmp_path):
                                                                    "photometric")[3:])
     assert (args.polish, args.symmetry) == ("photometric", None)
     assert "--polish" not in first.predict_command("a.png", "b.png", "o", "demo")
+    args = predict.build_parser().parse_args(first.predict_command("a.png", "b.png", "o", "long", confidence=True)[3:])
+    assert args.confidence and args.polish is None
+    assert "--confidence" not in first.predict_command("a.png", "b.png", "o", "demo")
 
     cmd = first.train_command(str(tmp_path / "wd"), "demo", 128, 256, extra=("--config.dtype=bfloat16",))
     assert cmd[:3] == [sys.executable, "-m", "bridge_jax.train"]
@@ -149,8 +152,8 @@ def test_cli_record_through_a_fake_child(tmp_path, monkeypatch, capsys):
     log = tmp_path / "log.jsonl"
     made = []
 
-    def fake_predict(a, b, out, checkpoint, working_size=None, symmetry=None, polish=None):
-        made.append((a, b, checkpoint, working_size, symmetry, polish))
+    def fake_predict(a, b, out, checkpoint, working_size=None, symmetry=None, polish=None, confidence=False):
+        made.append((a, b, checkpoint, working_size, symmetry, polish, confidence))
         return fake_command(log)(out)
 
     monkeypatch.setattr(first, "predict_command", fake_predict)
@@ -158,9 +161,10 @@ def test_cli_record_through_a_fake_child(tmp_path, monkeypatch, capsys):
     assert bench.main(["--what", "first_prediction", "--checkpoint", "long", "--working-size", "native",
                        "--symmetry", "none", "--polish", "none", "--json", str(out)]) == 0
     (r,) = [json.loads(line) for line in out.read_text().splitlines()]
-    assert len(made) == 3 and made[0][2:] == ("long", "native", "none", "none") and made[0][0].endswith("a.png")
+    assert len(made) == 3 and made[0][2:] == ("long", "native", "none", "none", False)
+    assert made[0][0].endswith("a.png")
     assert r["what"] == "first_prediction" and r["checkpoint"] == "long" and r["working_size"] == "native"
-    assert r["symmetry"] == "none" and r["polish"] == "none"
+    assert r["symmetry"] == "none" and r["polish"] == "none" and r["confidence"] is False
     assert (r["height"], r["width"], r["repeats"]) == (256, 512, 1)
     assert r["cold_s"] >= SLEEP_S and r["warm_s"] >= SLEEP_S and r["off_s"] >= SLEEP_S
     for key in ("machine", "cpu_isa", "cpu_model", "date", "jax_version", "loadavg", "other_procs_cpu_frac"):

@@ -151,6 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="first_prediction: bridge_jax.predict's --symmetry (default: the model's own choice)")
     p.add_argument("--polish", default=None, choices=testtime.POLISH_MODES,
                    help="first_prediction: bridge_jax.predict's --polish (default: the model's own choice)")
+    p.add_argument("--confidence", action="store_true",
+                   help="first_prediction: bridge_jax.predict with --confidence (the maps' confidence and occlusion)")
     return p
 
 

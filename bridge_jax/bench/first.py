@@ -150,11 +150,12 @@ def write_photo_pair(folder: str, height: int = PAIR_SIZE[0], width: int = PAIR_
 
 
 def predict_command(a: str, b: str, out: str, checkpoint: str, working_size: str | None = None,
-                    symmetry: str | None = None, polish: str | None = None) -> list[str]:
+                    symmetry: str | None = None, polish: str | None = None, confidence: bool = False) -> list[str]:
     cmd = [sys.executable, "-m", "bridge_jax.predict", "--checkpoint", checkpoint, "--task", "flow", a, b,
            "--out", out]
     return (cmd + (["--working-size", working_size] if working_size else [])
-            + (["--symmetry", symmetry] if symmetry else []) + (["--polish", polish] if polish else []))
+            + (["--symmetry", symmetry] if symmetry else []) + (["--polish", polish] if polish else [])
+            + (["--confidence"] if confidence else []))
 
 
 def measure_first_prediction(args) -> dict:
@@ -163,14 +164,14 @@ def measure_first_prediction(args) -> dict:
     with tempfile.TemporaryDirectory(prefix="bridge_bench_pair_") as tmp:
         a, b = write_photo_pair(tmp)
         rec = time_cold_warm(lambda out: predict_command(a, b, out, checkpoint, args.working_size, args.symmetry,
-                                                         args.polish),
+                                                         args.polish, confidence=args.confidence),
                              repeats=int(args.repeats), label="first_prediction", off=True)
     size, symmetry, polish = args.working_size or "default", args.symmetry or "default", args.polish or "default"
     variant = (f"{checkpoint} working size {size}" + (f" symmetry {symmetry}" if args.symmetry else "")
-               + (f" polish {polish}" if args.polish else ""))
+               + (f" polish {polish}" if args.polish else "") + (" confidence" if args.confidence else ""))
     return dict(what="first_prediction", variant=variant, checkpoint=checkpoint, working_size=size,
-                symmetry=symmetry, polish=polish, height=PAIR_SIZE[0], width=PAIR_SIZE[1], task="flow",
-                repeats=int(args.repeats), **rec)
+                symmetry=symmetry, polish=polish, confidence=bool(args.confidence), height=PAIR_SIZE[0],
+                width=PAIR_SIZE[1], task="flow", repeats=int(args.repeats), **rec)
 
 
 def _first_stage(config: str) -> str | None:

@@ -1,0 +1,192 @@
+"""Confidence and occlusion maps from the model's own consistency checks.
+
+The paper's losses already rest on two checks; at test time they say where a map can be trusted:
+
+* flow: the forward-backward check (eq. 6). Pixel x of `a` maps to x + D(x) in `b`; the backward map D' of
+  (b, a), read there, should bring it back: D(x) + D'(x + D(x)) = 0;
+* disparity: the left-right check (eq. 9), the same test on the horizontal axis. The right image's disparity
+  comes from the same network: the pair (right, left) flipped left-right is again a left -> right stereo pair
+  (the flipped right image is its left view), so its disparity, flipped back, is the right view's.
+
+For each pixel the check's residual is scored against the same threshold as in training (`ALPHA1`, `ALPHA2`):
+
+    score = |D + W(D', D)|^2 / (ALPHA1 * (|D|^2 + |W(D', D)|^2) + ALPHA2)
+
+so score <= 1 passes the check in training. The **occlusion** mask (True = no visible match in the other image)
+is score > the check's threshold (`OCCLUSION_THRESHOLD`), or a match outside the other image (out of view). The
+threshold depends on what the backward maps ran with (`CHECK_MODES`): maps that went through the same test-time
+stages agree closely where both are right (threshold 2), while a plain network map beside a polished one also
+differs by the polish's corrections, so the check must fail by more (threshold 16) before it means "occluded".
+
+A check cannot see an error that both maps share; the commonest one is at motion and depth edges, which the
+network (answering at a quarter of its working size) blurs over a few pixels in both directions alike. So the
+**confidence** adds the map's own variation around each pixel, scored against the same threshold:
+
+    edge = R^2 / (ALPHA1 * |D|^2 + ALPHA2),    R = the length of (max - min) of D's two components over the
+                                                   (2 * EDGE_RADIUS + 1)^2 window around the pixel
+    confidence = 2^-(score + EDGE_WEIGHT * edge),  halved for out-of-view matches
+
+1 = consistent and away from any edge, 0.5 where the check's residual reaches training's threshold, towards 0
+for maps that disagree by many times it; an out-of-view match (a check that cannot be made) counts half. Both maps
+are computed at the working size and brought to the input resolution (`to_input_resolution`).
+
+The backward maps cost one more prediction per pair; `Predictor` runs them with the test-time stages of its
+`check` record (`CHECK_MODES`, `default_check`).
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bridge_jax import geometry
+from bridge_jax.resizing import _resize, resize_weights_align_corners
+from bridge_jax.testtime import TestTime
+
+ALPHA1 = 0.01
+"""Relative part of the consistency threshold (px^2 per px^2 of motion), the paper's eq. 6 value."""
+ALPHA2 = 0.5
+"""Constant part of the consistency threshold, px^2 of the working size (eq. 6)."""
+EDGE_RADIUS = 3
+"""Half-width of the window the map's local variation is taken over (a 7 x 7 window at the working size)."""
+EDGE_WEIGHT = 0.1
+"""Weight of the map's local variation in the confidence, against the check's score (weight 1). This and
+`EDGE_RADIUS` were chosen on selection frames: the smallest summed relative AUSE of flow and disparity, the
+smallest radius (then weight) within 0.005 of it."""
+OUT_OF_VIEW_FACTOR = 0.5
+"""Confidence of a pixel whose match lies outside the other image is multiplied by this (its check cannot be
+made, so it counts as failed: below 0.5, as an occluded pixel's)."""
+
+
+def reverse_job(task: str, image_a: Any, image_b: Any) -> tuple[str, Any, Any]:
+    """The job whose map is the backward map of (task, a, b): flow b -> a; for a rectified stereo pair (left a,
+    right b) the pair (b, a) flipped left-right, itself a left -> right stereo pair (`backward_map` flips its
+    map back)."""
+    if task == "flow":
+        return "flow", image_b, image_a
+    return "stereo", np.ascontiguousarray(np.asarray(image_b)[:, ::-1]), np.ascontiguousarray(np.asarray(image_a)[:, ::-1])
+
+
+def backward_map(task: str, reverse_map: np.ndarray) -> np.ndarray:
+    """The working-size map `(H, W, 2)` of `reverse_job` -> the backward map D' in b's frame, b -> a, pixels.
+
+    Stereo: the flipped pair's map (-d'(x'), 0) is the disparity d' of the flipped right image; flipped back,
+    the right image's pixel x is found in the left image at x + d_R(x), so D' = (d_R, 0)."""
+    if task == "flow":
+        return np.asarray(reverse_map, np.float32)
+    d_right = -np.asarray(reverse_map, np.float32)[:, ::-1, 0]
+    return np.stack([d_right, np.zeros_like(d_right)], axis=-1)
+
+
+def _length_sq(x):
+    return jnp.sum(jnp.square(x), axis=-1)
+
+
+@jax.jit
+def consistency_score(d_fw: jax.Array, d_bw: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The consistency score and the out-of-view mask of forward maps (see the module docstring).
+
+    Args:
+      d_fw: `(N, H, W, 2)` forward pixel maps D, a -> b.
+      d_bw: `(N, H, W, 2)` backward pixel maps D', b -> a (in b's frame).
+    Returns:
+      score `(N, H, W)` float32 (<= 1: the check passes), out_of_view `(N, H, W)` bool (x + D(x) outside
+      [0, W - 1] x [0, H - 1]), both in a's frame.
+    """
+    warped = geometry.warp(d_bw, d_fw)   # D'(x + D(x)), bilinear, border clamp
+    score = _length_sq(d_fw + warped) / (ALPHA1 * (_length_sq(d_fw) + _length_sq(warped)) + ALPHA2)
+    h, w = d_fw.shape[-3:-1]
+    xs = jnp.arange(w, dtype=d_fw.dtype)[None, None, :] + d_fw[..., 0]
+    ys = jnp.arange(h, dtype=d_fw.dtype)[None, :, None] + d_fw[..., 1]
+    out_of_view = (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+    return score, out_of_view
+
+
+@functools.partial(jax.jit, static_argnames="radius")
+def edge_score(d: jax.Array, radius: int = EDGE_RADIUS) -> jax.Array:
+    """`(N, H, W)` the local variation of maps `d (N, H, W, 2)` (see the module docstring): the range of each
+    component over the (2 * radius + 1)^2 window (clipped at the image's border), as a length, squared and
+    divided by ALPHA1 * |D|^2 + ALPHA2."""
+    window, pad = (1, 2 * radius + 1, 2 * radius + 1), ((0, 0), (radius, radius), (radius, radius))
+    ranges = []
+    for c in range(2):
+        x = d[..., c]
+        high = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, window, (1, 1, 1), pad)
+        low = jax.lax.reduce_window(x, jnp.inf, jax.lax.min, window, (1, 1, 1), pad)
+        ranges.append(high - low)
+    return (jnp.square(ranges[0]) + jnp.square(ranges[1])) / (ALPHA1 * _length_sq(d) + ALPHA2)
+
+
+def confidence_from_score(score: np.ndarray, out_of_view: np.ndarray, edge: Any = 0.0,
+                          edge_weight: float = EDGE_WEIGHT) -> np.ndarray:
+    """Confidence in [0, 1] (float32): 2^-(score + edge_weight * edge), times `OUT_OF_VIEW_FACTOR` out of view."""
+    total = np.maximum(np.asarray(score, np.float32), 0.0) + edge_weight * np.maximum(np.asarray(edge, np.float32), 0.0)
+    conf = np.exp2(-total)
+    return np.where(out_of_view, OUT_OF_VIEW_FACTOR * conf, conf).astype(np.float32)
+
+
+def occlusion_from_score(score: np.ndarray, out_of_view: np.ndarray, threshold: float = 1.0) -> np.ndarray:
+    """Occlusion mask (bool, True = no visible match): the check fails (score > `threshold`, the check mode's
+    `OCCLUSION_THRESHOLD`) or the match is out of view."""
+    return (np.asarray(score) > threshold) | np.asarray(out_of_view, bool)
+
+
+def to_input_resolution(score: np.ndarray, out_of_view: np.ndarray, height: int, width: int,
+                        edge: Any = None, threshold: float = 1.0,
+                        edge_weight: float = EDGE_WEIGHT) -> tuple[np.ndarray, np.ndarray]:
+    """Working-size check score, out-of-view mask and edge score `(H, W)` -> (confidence, occlusion)
+    `(height, width)` at the input resolution: the three resized bilinearly as the maps are (align_corners, the
+    mask thresholded at 0.5), then `confidence_from_score` (with `edge_weight`) and `occlusion_from_score` (at
+    `threshold`). `edge` None = 0."""
+    score = np.asarray(score, np.float32)
+    edge = np.zeros_like(score) if edge is None else np.asarray(edge, np.float32)
+    oov = np.asarray(out_of_view, np.float32)
+    h, w = score.shape
+    if (h, w) != (height, width):
+        wy, wx = resize_weights_align_corners(h, height), resize_weights_align_corners(w, width)
+        planes = _resize(np.stack([score, oov, edge], -1), wy, wx)
+        score, oov, edge = planes[..., 0], planes[..., 1], planes[..., 2]
+    oov = oov > 0.5
+    return confidence_from_score(score, oov, edge, edge_weight), occlusion_from_score(score, oov, threshold)
+
+
+CHECK_MODES = ("network", "same")
+"""What the backward maps of a check run with: "network" = one plain network call per reverse pair (no symmetry,
+refinement or polish: about one eighth of `long`'s own stages, so the confidence costs little more than the
+prediction), "same" = the prediction's own test-time stages (twice the prediction's cost; its occlusion masks
+are sharper, since both maps went through the same stages)."""
+OCCLUSION_THRESHOLD = {"network": 16.0, "same": 2.0}
+"""The score above which a pixel is occluded, per check mode (see the module docstring); chosen on selection
+frames (the best summed F1 score of the flow and disparity masks, the smallest threshold within 0.02 of it)."""
+DEFAULT_CHECK = "network"
+"""The check mode a predictor uses unless told otherwise. On the selection frames the two modes were chosen on,
+the disagreement between the staged forward map and the plain backward one ranked disparity errors better than
+the same stages both ways (and costs about 1.1x instead of 2x); the flow errors the other way round."""
+
+
+def check_record(mode: str, test_time: TestTime, option: str = "check mode") -> TestTime:
+    """The `TestTime` the backward maps run with under check `mode` (`CHECK_MODES`) for a prediction running
+    `test_time`; ValueError naming `option` for an unknown mode."""
+    if mode not in CHECK_MODES:
+        raise ValueError(f"{option} {mode!r}: expected one of {', '.join(CHECK_MODES)}")
+    return test_time if mode == "same" else TestTime()
+
+
+def check_mode(check: TestTime, test_time: TestTime) -> str:
+    """The mode (`CHECK_MODES`) of backward maps run with `check` beside forward maps run with `test_time`:
+    "same" when the two records are one (both maps went through the same stages), else "network"."""
+    return "same" if check == test_time else "network"
+
+
+def default_check(test_time: TestTime) -> TestTime:
+    """The record the backward maps run with unless a predictor's `check` says otherwise:
+    `check_record(DEFAULT_CHECK, test_time)`."""
+    return check_record(DEFAULT_CHECK, test_time)
+
+
+__all__ = ["ALPHA1", "ALPHA2", "EDGE_RADIUS", "EDGE_WEIGHT", "OUT_OF_VIEW_FACTOR", "reverse_job", "backward_map",
+           "consistency_score", "edge_score", "CHECK_MODES", "DEFAULT_CHECK", "OCCLUSION_THRESHOLD", "check_record", "check_mode",
+           "confidence_from_score", "occlusion_from_score", "to_input_resolution", "default_check"]
