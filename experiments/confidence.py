@@ -15,7 +15,7 @@ sparsification curve (`metrics.sparsification`), AUSE, the mean error of the 50 
 that of all pixels, and the occlusion mask's precision and recall against the ground truth's occluded and
 out-of-view pixels (valid pixels whose point is not visible in the other image). Also measured: the disparity
 after filling the pixels the check flags with their background neighbours' (`eval.baselines.fill_invalid_disparity`,
-the KITTI devkit's rule), and the cost: seconds per frame with and without the confidence, warm, alternating on
+the KITTI devkit's rule), the flow after giving them their nearest unflagged neighbour's, and the cost: seconds per frame with and without the confidence, warm, alternating on
 one predictor.
 
     python experiments/confidence.py --models long --sweep --out experiments/results/raw/confidence.json
@@ -35,6 +35,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 import numpy as np  # noqa: E402
+from scipy import ndimage  # noqa: E402
 
 from bridge_jax import compile_cache, confidence, metrics  # noqa: E402
 from bridge_jax.eval import real_checks  # noqa: E402
@@ -113,6 +114,14 @@ def scored(item: dict, mode: str, radius: int, weight: float, threshold: float) 
     return {"pred": pred, "err": err, "conf": conf, "occ": occ}
 
 
+def nearest_fill(flow: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+    """`flow (H, W, 2)` with each flagged pixel given the flow of the nearest unflagged one (Euclidean)."""
+    if not flagged.any() or flagged.all():
+        return flow
+    _, (iy, ix) = ndimage.distance_transform_edt(flagged, return_indices=True)
+    return flow[iy, ix]
+
+
 def pooled(items: list[dict], mode: str, radius: int = confidence.EDGE_RADIUS,
            weight: float = confidence.EDGE_WEIGHT, threshold: float | None = None, fill: bool = False) -> dict:
     """Per key: sparsification numbers and occlusion scores pooled over `items`' valid pixels (and with `fill`,
@@ -132,6 +141,11 @@ def pooled(items: list[dict], mode: str, radius: int = confidence.EDGE_RADIUS,
             before = metrics.disparity_metrics(s["pred"], item["gt"])
             after = metrics.disparity_metrics(fill_invalid_disparity(s["pred"], ~s["occ"]), item["gt"])
             p["fill"].append((before["epe_all"], before["d1_all"], after["epe_all"], after["d1_all"]))
+        if fill and item["key"] == "flow":
+            noc = v & ~item["occ"]
+            before = metrics.flow_metrics(s["pred"], item["gt"], v, noc)
+            after = metrics.flow_metrics(nearest_fill(s["pred"], s["occ"]), item["gt"], v, noc)
+            p["fill"].append((before["epe_all"], before["epe_noc"], after["epe_all"], after["epe_noc"]))
     out = {}
     for key, p in parts.items():
         sp = metrics.sparsification(np.concatenate(p["err"]), np.concatenate(p["conf"]))
@@ -143,7 +157,8 @@ def pooled(items: list[dict], mode: str, radius: int = confidence.EDGE_RADIUS,
             row["occluded_true"] = float(true.mean())
         if p["fill"]:
             f = np.mean(np.asarray(p["fill"]), axis=0)
-            row["fill"] = {"epe": f[0], "d1": f[1], "epe_filled": f[2], "d1_filled": f[3]}
+            second = "d1" if key == "disparity" else "epe_noc"
+            row["fill"] = {"epe": f[0], second: f[1], "epe_filled": f[2], f"{second}_filled": f[3]}
         out[key] = row
     return out
 
@@ -212,7 +227,12 @@ def summary_lines(result: dict) -> list[str]:
             for name, rows in sets.items():
                 for key, r in rows.items():
                     occ = (f" occ P {r['occ_precision']:.2f} R {r['occ_recall']:.2f}" if "occ_precision" in r else "")
-                    fill = (f" fill D1 {r['fill']['d1']:.2f} -> {r['fill']['d1_filled']:.2f} %" if "fill" in r else "")
+                    fill = ""
+                    if "fill" in r:
+                        f = r["fill"]
+                        fill = (f" fill D1 {f['d1']:.2f} -> {f['d1_filled']:.2f} %" if "d1" in f else
+                                f" fill EPE {f['epe']:.3f} -> {f['epe_filled']:.3f}, noc {f['epe_noc']:.3f} -> "
+                                f"{f['epe_noc_filled']:.3f}")
                     lines.append(f"  {mode:8s} {name:18s} {key:9s} mean {r['mean']:.3f} top-50% ratio "
                                  f"{r['top_half_ratio']:.3f} AUSE {r['ause']:.3f} ({r['ause_relative']:.3f}){occ}{fill}")
         if "timing" in entry:
