@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
-from bridge_jax.resizing import _resize, resize_weights_align_corners
+from bridge_jax.resizing import _resize, map_to_input_resolution, resize_weights_align_corners
 from bridge_jax.testtime import TestTime
 
 ALPHA1 = 0.01
@@ -153,6 +153,31 @@ def to_input_resolution(score: np.ndarray, out_of_view: np.ndarray, height: int,
     return confidence_from_score(score, oov, edge, edge_weight), occlusion_from_score(score, oov, threshold)
 
 
+def checked_map(task: str, forward: np.ndarray, reverse_map: np.ndarray, height: int, width: int,
+                threshold: float, *, radius: int = EDGE_RADIUS,
+                edge_weight: float = EDGE_WEIGHT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pair's (prediction, confidence, occlusion) at the input resolution `height x width`.
+
+    Args:
+      task: "flow" or "stereo".
+      forward: the pair's working-size map `(H, W, 2)` (a stereo map's vertical component is dropped: a stereo
+        match stays on its row).
+      reverse_map: the working-size map of its `reverse_job` (`backward_map` turns it into D').
+      threshold: the occlusion threshold (`OCCLUSION_THRESHOLD` of the check's mode).
+      radius, edge_weight: the edge term's window and weight.
+    Returns:
+      the prediction as `resizing.map_to_input_resolution` gives it, confidence `(height, width)` float32,
+      occlusion `(height, width)` bool.
+    """
+    if task == "stereo":
+        forward = forward * np.array([1.0, 0.0], np.float32)
+    score, out_of_view = consistency_score(forward[None], backward_map(task, reverse_map)[None])
+    edge = edge_score(forward[None], radius=radius)
+    conf, occ = to_input_resolution(np.asarray(score[0]), np.asarray(out_of_view[0]), height, width,
+                                    np.asarray(edge[0]), threshold, edge_weight=edge_weight)
+    return map_to_input_resolution(task, forward, height, width), conf, occ
+
+
 CHECK_MODES = ("network", "same")
 """What the backward maps of a check run with: "network" = one plain network call per reverse pair (no symmetry,
 refinement or polish: about one eighth of `long`'s own stages, so the confidence costs little more than the
@@ -189,4 +214,4 @@ def default_check(test_time: TestTime) -> TestTime:
 
 __all__ = ["ALPHA1", "ALPHA2", "EDGE_RADIUS", "EDGE_WEIGHT", "OUT_OF_VIEW_FACTOR", "reverse_job", "backward_map",
            "consistency_score", "edge_score", "CHECK_MODES", "DEFAULT_CHECK", "OCCLUSION_THRESHOLD", "check_record", "check_mode",
-           "confidence_from_score", "occlusion_from_score", "to_input_resolution", "default_check"]
+           "confidence_from_score", "occlusion_from_score", "to_input_resolution", "checked_map", "default_check"]

@@ -276,7 +276,7 @@ class Predictor:
             maps = self.working_maps(jobs, batch)
             return [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
         jobs = [(check_task(task), a, b) for task, a, b in jobs]
-        if (self.check or checks.default_check(self.test_time)) == self.test_time:
+        if self._check_record() == self.test_time:
             maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in jobs], batch)  # shared batches
             return self.checked_predictions(jobs, maps[:len(jobs)], maps[len(jobs):])
         return self.checked_predictions(jobs, self.working_maps(jobs, batch), self.backward_maps(jobs, batch))
@@ -286,7 +286,7 @@ class Predictor:
         `check` (`confidence.default_check(test_time)` when None); `batch` as in `working_maps`."""
         reverse = [checks.reverse_job(check_task(task), a, b) for task, a, b in jobs]
         own = self.test_time
-        self.test_time = self.check or checks.default_check(own)
+        self.test_time = self._check_record()
         try:
             return self.working_maps(reverse, batch)
         finally:
@@ -296,20 +296,14 @@ class Predictor:
                             backward: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(prediction, confidence, occlusion) at each job's input size from its working-size `forward` map
         (`working_maps`) and the map of its reverse pair (`backward_maps`, run with `check`), by
-        `confidence.consistency_score` and `confidence.edge_score`, the occlusion at the threshold of the
-        check's mode (`confidence.check_mode`)."""
-        mode = checks.check_mode(self.check or checks.default_check(self.test_time), self.test_time)
-        out = []
-        for (task, a, _), fw, bw in zip(jobs, forward, backward):
-            if check_task(task) == "stereo":
-                fw = fw * np.array([1.0, 0.0], np.float32)  # a stereo match stays on its row
-            score, out_of_view = checks.consistency_score(fw[None], checks.backward_map(task, bw)[None])
-            edge = checks.edge_score(fw[None])
-            h, w = input_size(a)
-            conf, occ = checks.to_input_resolution(np.asarray(score[0]), np.asarray(out_of_view[0]), h, w,
-                                                   np.asarray(edge[0]), checks.OCCLUSION_THRESHOLD[mode])
-            out.append((map_to_input_resolution(task, fw, h, w), conf, occ))
-        return out
+        `confidence.checked_map` at the occlusion threshold of the check's mode (`confidence.check_mode`)."""
+        threshold = checks.OCCLUSION_THRESHOLD[checks.check_mode(self._check_record(), self.test_time)]
+        return [checks.checked_map(check_task(task), fw, bw, *input_size(a), threshold)
+                for (task, a, _), fw, bw in zip(jobs, forward, backward)]
+
+    def _check_record(self) -> TestTime:
+        """The `TestTime` the backward maps of a check run with: `check`, else `confidence.default_check`."""
+        return self.check or checks.default_check(self.test_time)
 
     def predict_pairs(self, images_a: Sequence, images_b: Sequence, task: str = "flow", *, confidence: bool = False,
                       occlusion: bool = False):

@@ -41,7 +41,7 @@ from bridge_jax import compile_cache, confidence, metrics  # noqa: E402
 from bridge_jax.eval import real_checks  # noqa: E402
 from bridge_jax.eval.baselines import fill_invalid_disparity  # noqa: E402
 from bridge_jax.eval.datasets import synthetic_frames  # noqa: E402
-from bridge_jax.inference import load_predictor, map_to_input_resolution  # noqa: E402
+from bridge_jax.inference import load_predictor  # noqa: E402
 
 SELECTION_SEED = 91_000_003
 """Seed of the selection frames (the "demo" scene; no check and no training run draws from it)."""
@@ -101,15 +101,9 @@ def motorcycle_items(pred, modes) -> list[dict]:
 
 def scored(item: dict, mode: str, radius: int, weight: float, threshold: float) -> dict:
     """The prediction, its error, confidence and occlusion at the ground truth's resolution."""
-    task, fw = item["task"], item["forward"]
-    if task == "stereo":
-        fw = fw * np.array([1.0, 0.0], np.float32)
-    score, oov = confidence.consistency_score(fw[None], confidence.backward_map(task, item["backward"][mode])[None])
-    edge = confidence.edge_score(fw[None], radius=radius)
-    h, w = item["gt"].shape[:2]
-    conf, occ = confidence.to_input_resolution(np.asarray(score[0]), np.asarray(oov[0]), h, w, np.asarray(edge[0]),
-                                               threshold, edge_weight=weight)
-    pred = map_to_input_resolution(task, fw, h, w)
+    task = item["task"]
+    pred, conf, occ = confidence.checked_map(task, item["forward"], item["backward"][mode], *item["gt"].shape[:2],
+                                             threshold, radius=radius, edge_weight=weight)
     err = np.sqrt(np.sum((pred - item["gt"]) ** 2, -1)) if task == "flow" else np.abs(pred - item["gt"])
     return {"pred": pred, "err": err, "conf": conf, "occ": occ}
 
