@@ -404,3 +404,65 @@ def mask_scores(predicted: np.ndarray, truth: np.ndarray, valid: Optional[np.nda
     recall = tp / float(true.sum()) if true.sum() else float("nan")
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else float("nan")
     return {"precision": precision, "recall": recall, "f1": f1}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Depth edges: where stereo methods fatten the foreground
+
+DEPTH_EDGE_JUMP = 3.0
+"""A depth edge lies between two neighbouring ground-truth pixels whose disparities differ by more than this many
+pixels (the KITTI outlier threshold: a surface, however slanted, rarely changes by that much from one pixel to
+the next)."""
+DEPTH_EDGE_RADIUS = 5
+"""Pixels within this Euclidean distance (px of the ground-truth resolution) of a depth edge form its band."""
+
+
+def depth_edge_band(gt: np.ndarray, valid: Optional[np.ndarray] = None, *, jump: float = DEPTH_EDGE_JUMP,
+                    radius: float = DEPTH_EDGE_RADIUS) -> np.ndarray:
+    """``(H, W)`` bool: the pixels with ground truth within `radius` px of a depth edge of `gt`.
+
+    An edge pixel is a valid pixel whose left, right, upper or lower neighbour is valid and differs from it by
+    more than `jump` px; both sides of the jump are edge pixels. Pixels without ground truth neither make edges
+    (the border of a hole is not a depth edge) nor belong to the band.
+
+    Args:
+      gt: ``(H, W)`` ground-truth disparity, pixels; 0 = no ground truth.
+      valid: ``(H, W)`` bool; default ``gt > 0``.
+    """
+    from scipy import ndimage  # jax's own dependency; imported here so that metrics stays numpy-only at import
+
+    gt = np.asarray(gt, np.float64)
+    valid = gt > 0 if valid is None else _check_mask(valid, gt.shape, "valid")
+    edge = np.zeros(gt.shape, bool)
+    across = (np.abs(np.diff(gt, axis=1)) > jump) & valid[:, 1:] & valid[:, :-1]
+    edge[:, 1:] |= across
+    edge[:, :-1] |= across
+    down = (np.abs(np.diff(gt, axis=0)) > jump) & valid[1:] & valid[:-1]
+    edge[1:] |= down
+    edge[:-1] |= down
+    if not edge.any():
+        return np.zeros(gt.shape, bool)
+    return (ndimage.distance_transform_edt(~edge) <= radius) & valid
+
+
+def disparity_edge_metrics(pred: np.ndarray, gt: np.ndarray, valid: Optional[np.ndarray] = None, *,
+                           jump: float = DEPTH_EDGE_JUMP, radius: float = DEPTH_EDGE_RADIUS) -> dict[str, float]:
+    """The disparity error near depth edges (`depth_edge_band`) of one image: {"epe_edge" px, "d1_edge" %
+    (KITTI outliers among the band's pixels), "fat_edge" % (the band's pixels whose disparity is too *large* by an
+    outlier's margin: a nearer surface bled over a farther one, the foreground fattening of window-based and
+    coarse-to-fine stereo)}; NaN when the image has no depth edge.
+
+    Args:
+      pred: ``(H, W)`` predicted disparity, pixels of the ground-truth resolution.
+      gt: ``(H, W)`` ground-truth disparity; 0 = no ground truth.
+      valid: ``(H, W)`` bool; default ``gt > 0``.
+    """
+    gt = np.asarray(gt, np.float64)
+    band = depth_edge_band(gt, valid, jump=jump, radius=radius)
+    if not band.any():
+        return {"epe_edge": float("nan"), "d1_edge": float("nan"), "fat_edge": float("nan")}
+    pred = np.asarray(pred, np.float64)
+    err = endpoint_error(pred, gt)
+    bad = outliers(err, np.abs(gt))
+    return {"epe_edge": float(err[band].mean()), "d1_edge": 100.0 * float(bad[band].mean()),
+            "fat_edge": 100.0 * float((bad & (pred > gt))[band].mean())}

@@ -1,7 +1,7 @@
 """Real-image checks: the models against OpenCV on real photographs with exact ground truth.
 
 The checks themselves (data, scoring) are `bridge_jax.eval.real_checks`, which `bridge-zoo compare` also runs;
-this script runs all five for several models and OpenCV and writes the tables, pictures and card entries. Five
+this script runs them for several models and OpenCV and writes the tables, pictures and card entries. Six
 checks, each run for every model (`--models`, shipped names or checkpoint paths) at every working size
 (`--sizes`: `trained` = the size the model was trained at, `native` = each input at its own resolution, or HxW),
 next to OpenCV on the same inputs at full resolution:
@@ -24,6 +24,12 @@ next to OpenCV on the same inputs at full resolution:
 5. **Pure zooms** (`real_checks.zoom_set`): each held-out photo zoomed by +4 % and -4 % about its centre, with a
    camera-response change: EPE and the gain (least-squares scale of the predicted flow), per direction. It shows
    whether a model reads expansion and contraction at their size (`long` before stage 6 read them 3-5 % short).
+6. **Kept out** (`real_checks.kept_out`): held-out synthetic frames drawn with another seed, and 12 homography
+   pairs of six other photos. No choice is made on it (`real_checks.SELECTION_CHECKS` are the five above: the
+   working size a card recommends, its refine / symmetry / polish, the polish's parameters, a recipe); it reports
+   how each choice fares on data the choice did not see. Near-edge disparity numbers (Motorcycle and both
+   synthetic sets: EPE and D1 within 5 px of a depth edge, and the share of those pixels fattened by a nearer
+   surface, `metrics.disparity_edge_metrics`) show the foreground fattening apart from the rest.
 
 Every check runs zero motion and three OpenCV baselines, each SGBM for disparity with one optical flow:
 DIS (medium preset), DIS down to the finest scale (`setFinestScale(0)`) and DeepFlow (`eval.baselines.FLOWS`;
@@ -39,7 +45,8 @@ from an earlier run's JSON (the models are not rerun; nor are pictures or cards 
 Writes the markdown table (machine and date in its header), a JSON file beside it with every number, picture
 panels (input | ground truth | OpenCV | each model; half-size JPEGs) under `--pictures`, and with `--card` the
 first model's numbers for its zoo card (`bridge-zoo build NAME --from WORKDIR --card FILE`; at the first
-`--refine`, `--symmetry` and `--polish` values, which the card then recommends). `--refine 0,2` scores each
+`--refine`, `--symmetry` and `--polish` values, which the card then recommends; with `--polish photometric,none`
+also the same settings' numbers without the polish, the card's `real_images_polish_none`). `--refine 0,2` scores each
 model without and with two test-time refinement passes (`inference.refine_maps`), `--symmetry none,flips`
 without and with test-time symmetry averaging (`inference.symmetric_maps`), `--polish none,photometric`
 without and with the test-time photometric polish (`bridge_jax.polish`); the default of all three, `card`, runs
@@ -71,31 +78,32 @@ PICTURES = {"motorcycle": lambda d: visualize.disparity_to_color(d, vmax=64.0),
 """The checks with a picture panel, and how each colours a map."""
 
 
-def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pictures: str | None = None) -> dict:
+def run_checks(methods: dict, *, per_photo: int = 3, synthetic_num: int = 16, pictures: str | None = None,
+               checks: tuple = tuple(real_checks.CHECKS)) -> dict:
     """methods: name -> method (`real_checks`: a predictor, `ZeroMotion`, `OpenCV`). Returns {check: {method:
-    metrics}} for every check of `real_checks.CHECKS`, plus {"seconds": {method: s}}; with `pictures`, writes a
-    panel per check of `PICTURES` (input | ground truth | each method's first map) into that folder."""
-    results: dict[str, dict] = {check: {} for check in real_checks.CHECKS}
+    metrics}} for each of `checks` (default every check of `real_checks.CHECKS`), plus {"seconds": {method: s}};
+    with `pictures`, writes a panel per check of `PICTURES` (input | ground truth | each method's first map)
+    into that folder."""
+    results: dict[str, dict] = {check: {} for check in checks}
     seconds: dict[str, float] = {}
-    data = {check: real_checks.build(check, per_photo=per_photo, synthetic_num=synthetic_num)
-            for check in real_checks.CHECKS}
-    panels: dict[str, list] = {check: [] for check in PICTURES}
+    data = {check: real_checks.build(check, per_photo=per_photo, synthetic_num=synthetic_num) for check in checks}
+    panels: dict[str, list] = {check: [] for check in PICTURES if check in checks}
     for name, method in methods.items():
         t0 = time.perf_counter()
-        for check in real_checks.CHECKS:
+        for check in checks:
             results[check][name], first = real_checks.score(method, check, data[check])
-            if check in PICTURES:
+            if check in panels:
                 panels[check].append((name, PICTURES[check](first)))
         seconds[name] = time.perf_counter() - t0
         print(f"{name}: {seconds[name]:.1f} s", file=sys.stderr, flush=True)
     if pictures:
         os.makedirs(pictures, exist_ok=True)
-        moto, hom, syn = data["motorcycle"], data["homography"][0], data["heldout_synthetic"][0]
-        gt_images = {"motorcycle": (moto["left"], PICTURES["motorcycle"](moto["disp"])),
-                     "homography": (hom["frame_t"], PICTURES["homography"](hom["flow"])),
-                     "heldout_synthetic": (syn.images["left_t"], PICTURES["heldout_synthetic"](syn.gt["flow_occ"]))}
+        gt_images = {"motorcycle": lambda d: (d["left"], PICTURES["motorcycle"](d["disp"])),
+                     "homography": lambda d: (d[0]["frame_t"], PICTURES["homography"](d[0]["flow"])),
+                     "heldout_synthetic": lambda d: (d[0].images["left_t"],
+                                                     PICTURES["heldout_synthetic"](d[0].gt["flow_occ"]))}
         for check, items in panels.items():
-            image, gt = gt_images[check]
+            image, gt = gt_images[check](data[check])
             tiles = [image, gt] + [t for _, t in items]
             labels = ["input", "ground truth"] + [n for n, _ in items]
             picture = visualize.panel(tiles, labels, ncols=3)
@@ -131,7 +139,7 @@ ZERO = "zero motion"
 
 STRONGEST_BY = {"motorcycle": ("d1_all", "epe_all"), "homography": ("epe_all",),
                 "heldout_synthetic": ("flow_epe_all",), "shifts": ("epe_horizontal", "epe_vertical"),
-                "zooms": ("epe_expand", "epe_contract")}
+                "zooms": ("epe_expand", "epe_contract"), "kept_out": ("flow_epe_all", "photo_epe_all")}
 """What makes a baseline the strongest of a check: the lowest mean of these numbers (every baseline's stereo is
 the same SGBM, so on the held-out synthetic set the flow decides)."""
 
@@ -150,19 +158,26 @@ def strongest_baseline(results: dict, check: str) -> Optional[str]:
     return min(rows, key=lambda n: sum(rows[n][k] for k in STRONGEST_BY[check]) / len(STRONGEST_BY[check]))
 
 
-COLUMNS = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %")],
+COLUMNS = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %"), ("epe_edge", "EPE near edges px"),
+                          ("d1_edge", "D1 near edges %"), ("fat_edge", "fattened near edges %")],
            "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
            "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
-                                 ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %")],
+                                 ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %"), ("disp_epe_edge", "EPE near edges"),
+                                 ("d1_edge", "D1 near edges %"), ("fat_edge", "fattened %")],
            "shifts": [("epe_horizontal", "EPE horizontal px"), ("epe_vertical", "EPE vertical px"),
                       ("gain_horizontal", "gain horizontal"), ("gain_vertical", "gain vertical")],
            "zooms": [("epe_expand", "EPE expanding px"), ("epe_contract", "EPE contracting px"),
-                     ("gain_expand", "gain expanding"), ("gain_contract", "gain contracting")]}
+                     ("gain_expand", "gain expanding"), ("gain_contract", "gain contracting")],
+           "kept_out": [("flow_epe_all", "synthetic flow EPE-all"), ("flow_epe_noc", "EPE-noc"),
+                        ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %"), ("d1_edge", "D1 near edges %"),
+                        ("photo_epe_all", "photo flow EPE-all"), ("photo_epe_noc", "photo EPE-noc")]}
 TITLES = {"motorcycle": "Middlebury Motorcycle (741x500, disparity)",
           "homography": "Held-out photos under homographies + moving patches (flow)",
           "heldout_synthetic": "Held-out synthetic scenes, 256x512 (flow and disparity)",
           "shifts": "Held-out photos shifted by 4 and 8 px, horizontally and vertically (flow; gain 1 = exact)",
-          "zooms": "Held-out photos zoomed by +4 % and -4 % about their centre (flow; gain 1 = exact)"}
+          "zooms": "Held-out photos zoomed by +4 % and -4 % about their centre (flow; gain 1 = exact)",
+          "kept_out": ("Kept out of every choice: held-out synthetic scenes of another seed (256x512) and 12 "
+                       "homography pairs of six other photos")}
 
 
 STEREO_ONLY, FLOW_ONLY = ("motorcycle",), ("homography", "shifts", "zooms")
@@ -235,6 +250,10 @@ def main(argv=None) -> int:
     p.add_argument("--polish", default="card",
                    help="comma list of test-time polishes to score (none, photometric; each a method), or 'card' = "
                         "what each model's card recommends (none for a checkpoint path)")
+    p.add_argument("--checks", default=",".join(real_checks.CHECKS),
+                   help="comma list of the checks to run (default all: %(default)s); `--checks kept_out` with "
+                        "several --refine/--symmetry/--polish values reports each test-time choice on the check "
+                        "no choice was made on")
     p.add_argument("--per-photo", type=int, default=3, help="homography pairs per held-out photo")
     p.add_argument("--synthetic-num", type=int, default=16, help="held-out synthetic frames")
     p.add_argument("--out", default=None, help="markdown file (a .json with every number is written beside it)")
@@ -247,6 +266,12 @@ def main(argv=None) -> int:
     p.add_argument("--models-from", default=None,
                    help="with --baselines-only: an earlier run's JSON whose model rows the tables show")
     args = p.parse_args(argv)
+    checks = tuple(c for c in args.checks.split(",") if c)
+    unknown = [c for c in checks if c not in real_checks.CHECKS]
+    if unknown or not checks:
+        p.error(f"--checks {args.checks!r}: expected a comma list of {', '.join(real_checks.CHECKS)}")
+    if args.card and set(checks) != set(real_checks.CHECKS):
+        p.error("--card needs every check (its card lists them all): leave --checks out")
     if args.baselines_only != bool(args.models_from):
         p.error("--baselines-only and --models-from go together: the models' rows come from that JSON")
     if args.baselines_only and (args.card or args.pictures):
@@ -265,7 +290,7 @@ def main(argv=None) -> int:
         p.error(f"DeepFlow: {baselines.CONTRIB_HINT}")
     methods: dict = {ZERO: real_checks.ZeroMotion()}
     methods.update({name: real_checks.OpenCV(flow=name.split(" / ")[1]) for name in BASELINES})
-    card_labels = {}
+    card_labels, card_labels_none = {}, {}
     models = [] if args.baselines_only else [m for m in args.models.split(",") if m]
     for i, model in enumerate(models):
         passes = [None] if args.refine == "card" else [int(v) for v in args.refine.split(",") if v]
@@ -289,8 +314,10 @@ def main(argv=None) -> int:
                 methods[label] = pred
                 if i == 0 and k == 0:
                     card_labels[size] = label
+                elif i == 0 and pred.polish == "none" and (refine, symmetry) == variants[0][:2]:
+                    card_labels_none[size] = label  # the card's settings but the polish: the network's own maps
     results = run_checks(methods, per_photo=args.per_photo, synthetic_num=args.synthetic_num,
-                         pictures=args.pictures)
+                         pictures=args.pictures, checks=checks)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     header = f"## Real-image checks, {stamp}, {timing.machine()}"
     extra = {}
@@ -315,16 +342,20 @@ def main(argv=None) -> int:
             json.dump({"date": stamp, "machine": timing.machine(), **extra, "stated_max_disparity": ranges,
                        "strongest_baseline": strongest, **results}, f, indent=1)
     if args.card:
-        checks = ("motorcycle", "homography", "heldout_synthetic")
+        checks = tuple(real_checks.CHECKS)
         card = {check: {**{size: results[check][label] for size, label in card_labels.items()},
                         "opencv": results[check][strongest[check]]} for check in checks}
+        first = methods[next(iter(card_labels.values()))]  # numbers at the first --refine/--symmetry/--polish
+        entries = {"real_images": card,
+                   "real_images_opencv": {c: baseline_label(c, strongest[c]) for c in checks},
+                   "real_images_measured": f"{stamp}, {timing.machine()}",
+                   "default_working_size": pick_working_size(card), "default_refine": first.refine,
+                   "default_symmetry": first.symmetry, "default_polish": first.polish}
+        if card_labels_none and first.polish != "none":  # `--polish P,none`: the network's own numbers beside
+            entries[real_checks.CARD_KEY_POLISH_NONE] = {
+                check: {size: results[check][label] for size, label in card_labels_none.items()} for check in checks}
         with open(args.card, "w") as f:
-            first = methods[next(iter(card_labels.values()))]  # numbers at the first --refine/--symmetry/--polish
-            json.dump({"real_images": card,
-                       "real_images_opencv": {c: baseline_label(c, strongest[c]) for c in checks},
-                       "real_images_measured": f"{stamp}, {timing.machine()}",
-                       "default_working_size": pick_working_size(card), "default_refine": first.refine,
-                       "default_symmetry": first.symmetry, "default_polish": first.polish}, f, indent=1)
+            json.dump(entries, f, indent=1)
     return 0
 
 

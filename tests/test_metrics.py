@@ -151,3 +151,36 @@ def test_garg_crop():
 def test_shape_mismatch_is_an_error():
     with pytest.raises(ValueError, match="shape"):
         metrics.flow_metrics(np.zeros((2, 3, 2)), np.zeros((3, 2, 2)), np.ones((3, 2), bool))
+
+
+def test_depth_edge_band_and_fattening_by_hand():
+    """A fronto-parallel step from 10 px (background, columns 0-19) to 30 px (foreground, 20-39): the edge pixels
+    are columns 19 and 20, the band of radius 2 columns 17-22 on every row. A prediction whose foreground bled
+    3 px onto the background (columns 17-19 read 30) has 3 wrong pixels of the band's 6 per row, each 20 px
+    off and too large."""
+    gt = np.zeros((8, 40))
+    gt[:, :20], gt[:, 20:] = 10.0, 30.0
+    band = metrics.depth_edge_band(gt, radius=2)
+    assert band.sum() == 8 * 6 and band[:, 17:23].all()
+    pred = gt.copy()
+    pred[:, 17:20] = 30.0
+    m = metrics.disparity_edge_metrics(pred, gt, radius=2)
+    assert m["epe_edge"] == pytest.approx(3 * 20.0 / 6) and m["d1_edge"] == pytest.approx(50.0)
+    assert m["fat_edge"] == pytest.approx(50.0)
+    # the same error the other way (background eaten into the foreground) is wrong but not fattening
+    thin = gt.copy()
+    thin[:, 20:23] = 10.0
+    m = metrics.disparity_edge_metrics(thin, gt, radius=2)
+    assert m["d1_edge"] == pytest.approx(50.0) and m["fat_edge"] == 0.0
+    # a slanted surface (1 px per column) and the border of a hole make no edge
+    slant = np.tile(np.arange(1.0, 41.0), (8, 1))
+    slant[:, 30:] = 0.0
+    assert not metrics.depth_edge_band(slant).any()
+    assert math.isnan(metrics.disparity_edge_metrics(slant, slant)["d1_edge"])
+    # a pixel without ground truth is neither an edge nor in the band; row 3 then has no edge pixel of its own,
+    # so its columns 17 and 22 lie sqrt(2^2 + 1) > 2 px from the nearest ones (rows 2 and 4, columns 19 and 20)
+    holed = gt.copy()
+    holed[3, 20] = 0.0
+    band = metrics.depth_edge_band(holed, radius=2)
+    assert not band[3, 20] and band[3, 19] and band[3, 21] and not band[3, 17] and not band[3, 22]
+    assert band.sum() == 8 * 6 - 3

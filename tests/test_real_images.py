@@ -3,6 +3,7 @@ experiments/real_images.py: hand-computed cases."""
 import numpy as np
 import pytest
 
+from bridge_jax.data import photos
 from bridge_jax.eval import real_checks
 from experiments import real_images
 
@@ -151,3 +152,40 @@ def test_zoom_set_and_its_metrics_hand_case():
     expand = [p for p in pairs if p["zoom"] > 1]
     mean_len = np.mean([np.linalg.norm(p["flow"], axis=-1)[p["noc"]].mean() for p in expand])
     assert m["epe_expand"] == pytest.approx(0.1 * mean_len, rel=1e-5) and m["epe_contract"] == pytest.approx(0.0)
+
+
+def test_kept_out_check_is_other_data_scored_by_hand():
+    """The kept-out check's data are draws no other check uses, and its numbers are what numpy computes from the
+    ground truth: 0 for a method that returns it, the mean ground-truth magnitude for zero motion."""
+    data = real_checks.build("kept_out", limit=2)
+    frames, pairs = data["frames"], data["pairs"]
+    assert len(frames) == 2 and [p["id"] for p in pairs] == ["rocket-0", "rocket-1"]
+    full = real_checks.homography_set(2, real_checks.KEPT_OUT_PHOTO_SEED, real_checks.KEPT_OUT_PHOTOS, limit=3)
+    assert all(np.array_equal(a["flow"], b["flow"]) for a, b in zip(pairs, full))  # a limit draws the same pairs
+    held = real_checks.heldout_synthetic(1)[0]
+    assert not np.array_equal(held.images["left_t"], frames[0].images["left_t"])
+    assert not set(real_checks.KEPT_OUT_PHOTOS) & set(photos.HELDOUT_PHOTOS)
+
+    truth = {}
+    for fr in frames:
+        truth[id(fr.images["right_t"])] = fr.gt["disp_occ_0"]
+        truth[id(fr.images["left_t1"])] = fr.gt["flow_occ"]
+    for p in pairs:
+        truth[id(p["frame_t1"])] = p["flow"]
+
+    class Oracle:
+        def predict(self, jobs, batch=None):
+            return [truth[id(b)] for _, _, b in jobs]
+
+    exact, _ = real_checks.score(Oracle(), "kept_out", data)
+    assert exact["flow_epe_all"] == 0 and exact["disp_epe_all"] == 0 and exact["d1_all"] == 0
+    assert exact["photo_epe_all"] == 0 and exact["photo_epe_noc"] == 0
+    zero, _ = real_checks.score(real_checks.ZeroMotion(), "kept_out", data)
+    flows = [p["flow"].astype(np.float64) for p in pairs]
+    want = np.mean([np.hypot(f[..., 0], f[..., 1]).mean() for f in flows])
+    assert zero["photo_epe_all"] == pytest.approx(want, rel=1e-9)
+    disp = [fr.gt["disp_occ_0"].astype(np.float64) for fr in frames]
+    assert zero["disp_epe_all"] == pytest.approx(np.mean([d[d > 0].mean() for d in disp]), rel=1e-9)
+    # no choice is made on it: the numbers that pick a card's working size come from the other checks
+    assert "kept_out" in real_checks.CHECKS and "kept_out" not in real_checks.SELECTION_CHECKS
+    assert {c for c, _ in real_images.HEADLINE} <= set(real_checks.SELECTION_CHECKS)

@@ -200,6 +200,8 @@ def test_recipe_stages_start_from_the_previous_stage_and_resume_at_a_boundary(tm
         card = zoo.recipe_summary(ref, machine="m")
         assert card["rebuild"] == "bridge-train --config=tiny.py --workdir=WORKDIR"
         assert [(st["stage"], st["steps"], st["height"]) for st in card["recipe"]] == [("a", 4, 64), ("b", 3, 64)]
+        # each stage's final validation, as its finished.json recorded it (the card's per-stage numbers)
+        assert [st["validation"] for st in card["recipe"]] == [recipe.finished(ref, n)["validation"] for n in "ab"]
         assert card["training"]["total_seconds"] == pytest.approx(sum(st["seconds"] for st in res["stages"]), abs=0.2)
         assert card["training"]["first_step"] == 1 and card["training"]["last_step"] == 7
         line, stale = workdir_mod.describe_status(ref)

@@ -1,6 +1,6 @@
 """Real-image checks: a model on real photographs whose motion is known exactly.
 
-Five checks (`CHECKS`), each a data builder (`build`) and a scorer (`score`) that returns the check's numbers
+Six checks (`CHECKS`), each a data builder (`build`) and a scorer (`score`) that returns the check's numbers
 (lower is better, except the gains of `shifts` and `zooms`, where 1 is exact):
 
 * ``motorcycle``: scikit-image's Middlebury "Motorcycle" stereo pair with its ground-truth disparity (741x500):
@@ -14,6 +14,8 @@ Five checks (`CHECKS`), each a data builder (`build`) and a scorer (`score`) tha
   gain along the motion, per direction.
 * ``zooms``: each held-out photo zoomed by +4 % and -4 % about its centre (`zoom_set`): EPE and the gain, per
   direction.
+* ``kept_out``: held-out synthetic frames of another seed and homography pairs of other photos (`kept_out`): the
+  check no choice is made on (`SELECTION_CHECKS` are the others), where each choice is reported.
 
 A *method* is anything with ``predict(jobs, batch=None) -> list[np.ndarray]``, jobs ``(task, image_a,
 image_b)`` of uint8 RGB ``(H, W, 3)`` images, task ``"stereo"`` -> ``(H, W)`` disparity px or ``"flow"`` ->
@@ -30,6 +32,7 @@ running every check for several models and OpenCV (`score`), outside the package
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -179,17 +182,20 @@ def homography_pair(photo: np.ndarray, patch_photo: np.ndarray, rng: np.random.G
             "noc": noc}
 
 
-def homography_set(per_photo: int = 3, seed: int = HOMOGRAPHY_SEED) -> list[dict]:
-    """`per_photo` pairs (`homography_pair`, plus "id") of each held-out photo; the patches come from the next
-    held-out photo. One generator draws every pair in turn, so the first pairs of a set do not depend on how
-    many follow."""
+def homography_set(per_photo: int = 3, seed: int = HOMOGRAPHY_SEED,
+                   names: Sequence[str] = photos.HELDOUT_PHOTOS, limit: Optional[int] = None) -> list[dict]:
+    """`per_photo` pairs (`homography_pair`, plus "id") of each photo of `names` (default the held-out photos);
+    the patches come from the next photo. One generator draws every pair in turn, so the first pairs of a set do
+    not depend on how many follow; `limit` stops after that many (the same first pairs, without drawing the
+    rest)."""
     rng = np.random.default_rng(seed)
-    names = photos.HELDOUT_PHOTOS
-    images = {n: photos.load_photo(n) for n in names}
+    load = functools.lru_cache(maxsize=None)(photos.load_photo)
     out = []
     for i, name in enumerate(names):
         for j in range(per_photo):
-            pair = homography_pair(images[name], images[names[(i + 1) % len(names)]], rng)
+            if limit is not None and len(out) >= limit:
+                return out
+            pair = homography_pair(load(name), load(names[(i + 1) % len(names)]), rng)
             pair["id"] = f"{name}-{j}"
             out.append(pair)
     return out
@@ -283,6 +289,25 @@ def heldout_synthetic(num: int = 16) -> list[Frame]:
     return synthetic_frames(num, HELDOUT_SYNTHETIC_SEED, *HELDOUT_SYNTHETIC_SIZE, scene="heldout")
 
 
+KEPT_OUT_SYNTHETIC_SEED = 3_000_003  # disjoint from training (0), validation (1,000,003) and the held-out check
+KEPT_OUT_PHOTOS = ("rocket", "hubble_deep_field", "immunohistochemistry", "retina", "brick", "grass")
+"""The photos of the kept-out check's flow pairs: training photos (their textures were seen in training, their
+motions under these homographies were not), so that no photo of a selection's checks is reused."""
+KEPT_OUT_PHOTO_SEED = 7
+
+
+def kept_out(synthetic_num: int = 16, per_photo: int = 2, limit: Optional[int] = None) -> dict:
+    """The data of the ``kept_out`` check, which no choice of this project may look at (the test-time settings a
+    card recommends, the polish's parameters, the working size: each is chosen on the other checks and reported
+    here): {"frames": `synthetic_num` frames of the held-out synthetic scenes drawn with another seed than the
+    ``heldout_synthetic`` check's (`KEPT_OUT_SYNTHETIC_SEED`, 256x512), "pairs": `per_photo` homography pairs
+    (`homography_set`, moving patches and camera change included) of each of `KEPT_OUT_PHOTOS`}; `limit`: only
+    the first `limit` frames and pairs (a quick look)."""
+    num = synthetic_num if limit is None else min(limit, synthetic_num)
+    return {"frames": synthetic_frames(num, KEPT_OUT_SYNTHETIC_SEED, *HELDOUT_SYNTHETIC_SIZE, scene="heldout"),
+            "pairs": homography_set(per_photo, KEPT_OUT_PHOTO_SEED, KEPT_OUT_PHOTOS, limit=limit)}
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Methods and scoring
 # ----------------------------------------------------------------------------------------------------------
@@ -373,10 +398,12 @@ def pair_flows(method, pairs: Sequence[dict]) -> list[np.ndarray]:
 
 
 def score_motorcycle(method, moto: dict) -> tuple[dict, np.ndarray]:
-    """{"epe_all", "d1_all"} of `method`'s disparity of `motorcycle()` over its ground-truth pixels, and that
-    disparity (500, 741) px."""
+    """{"epe_all", "d1_all"} of `method`'s disparity of `motorcycle()` over its ground-truth pixels, the same
+    within a few pixels of the depth edges ("epe_edge", "d1_edge", and "fat_edge", the share of those pixels
+    given a nearer surface's disparity: `metrics.disparity_edge_metrics`), and that disparity (500, 741) px."""
     d = method.predict([("stereo", moto["left"], moto["right"])])[0]
-    return _pick(metrics.disparity_metrics(d, moto["disp"], moto["valid"]), ("epe_all", "d1_all")), d
+    return {**_pick(metrics.disparity_metrics(d, moto["disp"], moto["valid"]), ("epe_all", "d1_all")),
+            **metrics.disparity_edge_metrics(d, moto["disp"], moto["valid"])}, d
 
 
 def score_homography(method, pairs: Sequence[dict]) -> tuple[dict, np.ndarray]:
@@ -389,8 +416,10 @@ def score_homography(method, pairs: Sequence[dict]) -> tuple[dict, np.ndarray]:
 
 
 def score_heldout_synthetic(method, frames: Sequence[Frame]) -> tuple[dict, np.ndarray]:
-    """{"flow_epe_all", "flow_epe_noc", "fl_all", "disp_epe_all", "d1_all"} of `method`, each the mean over
-    `frames` (`heldout_synthetic`), and the first frame's flow (256, 512, 2) px."""
+    """{"flow_epe_all", "flow_epe_noc", "fl_all", "disp_epe_all", "d1_all", "disp_epe_edge", "d1_edge",
+    "fat_edge"} of `method` (the last three within a few pixels of the depth edges,
+    `metrics.disparity_edge_metrics`), each the mean over `frames` (`heldout_synthetic`; the edge numbers over
+    the frames with a depth edge), and the first frame's flow (256, 512, 2) px."""
     rows, first = [], None
     for fr in frames:
         im = fr.images
@@ -398,10 +427,21 @@ def score_heldout_synthetic(method, frames: Sequence[Frame]) -> tuple[dict, np.n
         d, f = method.predict([("stereo", im["left_t"], im["right_t"]), ("flow", im["left_t"], im["left_t1"])])
         fm = metrics.flow_metrics(f, fr.gt["flow_occ"], fr.gt["flow_occ_valid"], fr.gt["flow_noc_valid"])
         dm = metrics.disparity_metrics(d, fr.gt["disp_occ_0"])
+        em = metrics.disparity_edge_metrics(d, fr.gt["disp_occ_0"])
         rows.append({"flow_epe_all": fm["epe_all"], "flow_epe_noc": fm["epe_noc"], "fl_all": fm["fl_all"],
-                     "disp_epe_all": dm["epe_all"], "d1_all": dm["d1_all"]})
+                     "disp_epe_all": dm["epe_all"], "d1_all": dm["d1_all"], "disp_epe_edge": em["epe_edge"],
+                     "d1_edge": em["d1_edge"], "fat_edge": em["fat_edge"]})
         first = f if first is None else first
     return _mean(rows), first
+
+
+def score_kept_out(method, data: dict) -> tuple[dict, np.ndarray]:
+    """The ``kept_out`` check (`kept_out`): the held-out synthetic numbers of its frames
+    (`score_heldout_synthetic`: flow, disparity, near depth edges) and "photo_epe_all" / "photo_epe_noc", the
+    mean flow EPE over its photo pairs; and the first frame's flow (256, 512, 2) px."""
+    numbers, first = score_heldout_synthetic(method, data["frames"])
+    photo, _ = score_homography(method, data["pairs"])
+    return {**numbers, "photo_epe_all": photo["epe_all"], "photo_epe_noc": photo["epe_noc"]}, first
 
 
 def score_shifts(method, pairs: Sequence[dict]) -> tuple[dict, np.ndarray]:
@@ -418,19 +458,25 @@ def score_zooms(method, pairs: Sequence[dict]) -> tuple[dict, np.ndarray]:
 
 CHECKS: dict[str, Callable] = {"motorcycle": score_motorcycle, "homography": score_homography,
                                "heldout_synthetic": score_heldout_synthetic, "shifts": score_shifts,
-                               "zooms": score_zooms}
+                               "zooms": score_zooms, "kept_out": score_kept_out}
 """The checks by name, in the order they run, with their scorers."""
+SELECTION_CHECKS = tuple(c for c in CHECKS if c != "kept_out")
+"""The checks a choice (a card's test-time settings, the polish's parameters, a recipe) may be made on; the
+``kept_out`` check only reports how each choice fares on data it did not see."""
 
 
 def build(check: str, *, per_photo: int = 3, synthetic_num: int = 16, limit: Optional[int] = None) -> Any:
     """The inputs and ground truth of `check` (one of `CHECKS`): `motorcycle()` (a dict), else a list of pairs
-    or frames: `homography_set(per_photo)`, `heldout_synthetic(synthetic_num)`, `shift_set()`, `zoom_set()`.
+    or frames: `homography_set(per_photo)`, `heldout_synthetic(synthetic_num)`, `shift_set()`, `zoom_set()`;
+    `kept_out(synthetic_num)` (a dict of frames and pairs).
     `limit`: keep only the first `limit` pairs or frames (a quick look: the first ones are the same as in the
     full set, so the numbers are those of a subset, not the card's)."""
     if check == "motorcycle":
         return motorcycle()
     if check == "heldout_synthetic":
         return heldout_synthetic(synthetic_num if limit is None else min(limit, synthetic_num))
+    if check == "kept_out":
+        return kept_out(synthetic_num, limit=limit)
     sets = {"homography": lambda: homography_set(per_photo), "shifts": shift_set, "zooms": zoom_set}
     if check not in sets:
         raise ValueError(f"unknown real-image check {check!r}; checks: {', '.join(CHECKS)}")

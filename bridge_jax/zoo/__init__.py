@@ -406,7 +406,8 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
 
 def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) -> dict:
     """For a recipe workdir (`bridge_jax.recipe`): {"rebuild": the one command that trains it again from nothing,
-    "recipe": [{"stage", "steps", "seconds", "height", "width", "global_batch", "lr"} per stage], and
+    "recipe": [{"stage", "steps", "seconds", "height", "width", "global_batch", "lr", "validation" (the stage's last,
+    at its own size)} per stage], and
     "training": {"total_seconds": the stages' seconds added up, "machine"}}; {} for any other workdir."""
     from bridge_jax import recipe  # heavy import only for maintainers
 
@@ -420,7 +421,8 @@ def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) ->
             raise ValueError(f"--from {workdir}: stage {name} of the recipe has not finished")
         cfg = record.get("configs", {}).get(name, {})
         stages.append({"stage": name, "steps": done["steps"], "seconds": done["seconds"],
-                       **{k: cfg.get(k) for k in ("height", "width", "global_batch", "lr")}})
+                       **{k: cfg.get(k) for k in ("height", "width", "global_batch", "lr")},
+                       "validation": done.get("validation") or {}})
     command = f"bridge-train --config={record.get('config_name') or '?'} --workdir=WORKDIR"
     return {"rebuild": command, "recipe": stages,
             "training": dict(training_summary(workdir), machine=machine or _this_machine(),
@@ -443,10 +445,15 @@ def card_lines(name: str) -> list[str]:
              f"{cfg.get('data', {}).get('synthetic_scene', 'demo')}; lr {cfg.get('lr')}, "
              f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
     if meta.get("rebuild"):
-        lines.append(f"  rebuild: {meta['rebuild']}")
+        at = f" (trained at commit {meta['commit']})" if meta.get("commit") else ""
+        lines.append(f"  rebuild: {meta['rebuild']}{at}")
     for stage in meta.get("recipe") or []:  # the stages of the recipe that trained it
+        val = stage.get("validation") or {}
+        ended = ", ".join(f"{k} {val[k]:.3f}" for k in ("flow_epe_all", "disp_epe_all")
+                          if isinstance(val.get(k), (int, float)))
         lines.append(f"  stage {stage['stage']}: {stage['steps']} steps at {stage.get('height')}x{stage.get('width')}, "
-                     f"batch {stage.get('global_batch')}, lr {stage.get('lr')}, in {stage['seconds'] / 3600:.2f} h")
+                     f"batch {stage.get('global_batch')}, lr {stage.get('lr')}, in {stage['seconds'] / 3600:.2f} h"
+                     + (f"; validation at its size {ended}" if ended else ""))
     for i, stage in enumerate(meta.get("earlier_stages") or [], 1):  # runs whose weights this one started from
         lines.append(f"  stage {i}: --config={stage.get('config', '?')}, {stage.get('steps', '?')} steps from "
                      f"{stage.get('init_from') or 'scratch'}, lr {stage.get('lr')}, in "
@@ -481,4 +488,7 @@ def card_lines(name: str) -> list[str]:
         for size, values in by_size.items():
             which = f" ({baselines[check]}, the strongest baseline)" if size == "opencv" and check in baselines else ""
             lines.append(f"  {check} @ {size}{which}: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
+    for check, by_size in (meta.get("real_images_polish_none") or {}).items():  # the network's own maps
+        for size, values in by_size.items():
+            lines.append(f"  {check} @ {size}, polish none: " + ", ".join(f"{k} {v:.3f}" for k, v in values.items()))
     return lines
