@@ -195,7 +195,8 @@ def occlusion_mask(d_fw, d_bw, d_bw_warped=None, d_fw_warped=None, *, alpha1: fl
     mask = border * (1 - occluded) + floor, for both directions, gradients stopped; `occluded` is
     `forward_backward_occlusion` (eq. 6). The band of ceil(border_ratio * H_s) px on all four sides (where
     warps read clamped border pixels) and the +1e-3 floor are the upstream code's, not in the paper. Stereo
-    pairs are not masked (their mask is 1): that choice is made by the caller (`losses.cycle_loss`).
+    pairs are not masked (their mask is 1) unless `LossConfig.stereo_occlusion`: that choice is made by the
+    caller (`losses.cycle_loss`).
 
     Args:
       d_fw, d_bw: (..., H, W, 2) forward / backward pixel maps; d_bw_warped, d_fw_warped: optional

@@ -101,6 +101,11 @@ class LossConfig:
     beta1: float = 10.0  # edge constant of the 1st-order smoothness
     # Flow pairs use no occlusion mask (mask 1, as stereo pairs) before this training step; 0 = the paper.
     occlusion_start_step: int = 0  # flow pairs use no occlusion mask before this step (0 = the paper)
+    # Stereo pairs masked by the same occlusion check (eq. 6 on D and D', the left-right check) as flow pairs.
+    # The paper leaves them unmasked (mask 1): on a background pixel hidden behind a nearer object the
+    # photometric term then rewards the nearer object's disparity, which lands on similar background beside the
+    # object in the other view, and the network learns to bleed foreground disparity into occlusions.
+    stereo_occlusion: bool = False  # mask stereo pairs by the occlusion check too (False = the paper)
     # Self-supervision (SelFlow, SMURF, Flow2Stereo; `self_supervision_loss`): the weight of a term in which the
     # network's own scale-0 pixel maps on the full frames (the teacher: gradient stopped, only where its
     # forward-backward check passes and its match lies inside the image) supervise its maps on the cycle's four
@@ -713,11 +718,13 @@ def scale_terms(px, frac, frames, cfg: LossConfig, step=None) -> ScaleTerms:
     px_b_w, px_f_w = warped[:p, ..., 3:5], warped[p:, ..., 3:5]  # W(D', D), W(D, D')
     fr_b_w, fr_f_w = warped[:p, ..., 5:7], warped[p:, ..., 5:7]
 
-    # Occlusion masks (eq. 6) on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3). Detached.
+    # Occlusion masks (eq. 6) on flow pairs only; stereo pairs get mask 1 (paper Sec. 3.3) unless
+    # `stereo_occlusion`. Detached.
     m_f, m_b = geometry.occlusion_mask(px_f, px_b, px_b_w, px_f_w, alpha1=cfg.occ_alpha1, alpha2=cfg.occ_alpha2,
                                        warped_bw_norm=cfg.occlusion_norm == "warped",
                                        border_ratio=cfg.border_ratio, floor=cfg.mask_floor)
-    unmasked = jnp.array([cyc.PAIRS[k].task == "stereo" for k in pairs])[:, None, None, None]
+    unmasked = jnp.array([cyc.PAIRS[k].task == "stereo" and not cfg.stereo_occlusion
+                          for k in pairs])[:, None, None, None]
     if cfg.occlusion_start_step > 0 and step is not None:  # before the start step flow pairs are unmasked too
         unmasked = unmasked | (step < cfg.occlusion_start_step)
     m_f = jax.lax.stop_gradient(jnp.where(unmasked, 1.0, m_f))

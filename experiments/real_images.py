@@ -196,7 +196,7 @@ def baseline_label(check: str, name: str) -> str:
 
 
 def _number(key: str, value: float) -> str:
-    return f"{value:.3f}" if key.startswith(("epe", "flow_epe", "disp_epe", "gain")) else f"{value:.1f}"
+    return f"{value:.3f}" if key.startswith(("epe", "flow_epe", "disp_epe", "photo_epe", "gain")) else f"{value:.1f}"
 
 
 def markdown(results: dict, header: str) -> str:

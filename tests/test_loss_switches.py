@@ -141,6 +141,39 @@ def test_no_occlusion_mask_before_the_start_step():
 
 
 
+def test_stereo_occlusion_masks_the_stereo_pairs_like_the_flow_pairs():
+    """`stereo_occlusion`: the stereo pairs' reconstruction term is the masked mean under the occlusion mask
+    (here the border band alone: a check that never fires, a 25 % band, no floor), computed in numpy from the
+    warped right views; the paper's stereo pairs (the default) take the plain mean. A check that passes
+    everywhere (no band) gives the paper's numbers."""
+    from bridge_jax import geometry
+    from bridge_jax.cycle import PAIRS, STEREO_T, STEREO_T1
+    cycle, gt = translating_cycle(H, W)
+    maps = gt_maps(gt, H, W)
+    noisy = {k: tuple(m + 0.5 * jnp.sin(jnp.arange(m.shape[2]) / 3.0)[None, None, :, None] for m in v)
+             for k, v in maps.items()}
+    band = dict(tasks="stereo_only", occ_alpha1=1e9, border_ratio=0.25, mask_floor=0.0)
+    _, masked = losses.cycle_loss(noisy, jnp.asarray(cycle), losses.LossConfig(stereo_occlusion=True, **band))
+    _, paper = losses.cycle_loss(noisy, jnp.asarray(cycle), losses.LossConfig(**band))
+    _, open_ = losses.cycle_loss(noisy, jnp.asarray(cycle), losses.LossConfig(
+        stereo_occlusion=True, **dict(band, border_ratio=0.0)))
+    rows = (PAIRS[STEREO_T1], PAIRS[STEREO_T])  # the rows of tasks="stereo_only", in order
+    px = np.asarray(noisy["px"][0])[[0, 3]]  # forward maps of the two stereo pairs at scale 0
+    keep = np.zeros((H, W))
+    keep[16:H - 16, 16:W - 16] = 1.0  # ceil(0.25 H) px off every side (the band's width comes from H, as upstream)
+    l1_masked, l1_plain = [], []
+    for pair, m in zip(rows, px):
+        est = np.asarray(geometry.warp(jnp.asarray(cycle[pair.latter])[None], jnp.asarray(m)[None]))[0]
+        err = np.abs(est - cycle[pair.former]).mean(-1)
+        l1_masked.append((err * keep).sum() / keep.sum())
+        l1_plain.append(err.mean())
+    assert float(masked["l1_fwd/0"]) == pytest.approx(np.mean(l1_masked), rel=1e-4)
+    assert float(paper["l1_fwd/0"]) == pytest.approx(np.mean(l1_plain), rel=1e-4)
+    assert abs(np.mean(l1_masked) - np.mean(l1_plain)) > 1e-3  # the band matters here
+    for k in ("photo_fwd", "photo_bwd"):
+        assert float(open_[k]) == pytest.approx(float(paper[k]), rel=1e-6)
+
+
 def test_gradient_clipping_by_global_norm():
     grads = {"a": jnp.asarray([3.0, 4.0]), "b": jnp.asarray([12.0])}  # global norm 13
     params = jax.tree.map(jnp.zeros_like, grads)

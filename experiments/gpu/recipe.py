@@ -46,6 +46,22 @@ CANDIDATES = {
           "--config.stage_overrides.main.loop.num_train_steps=2400",
           "--config.stage_overrides.main.loop.steps_per_epoch=400",
           "--config.stage_overrides.hires.loop.num_train_steps=1"],
+    # D's stages with a third more 64x128 steps and twice the 128x256 ones (run end to end on a 2-core CPU:
+    # 1 h 59 min, long_recipe.md section 3b)
+    "G": ["--config.stage_overrides.coarse.loop.num_train_steps=12000",
+          "--config.stage_overrides.coarse.loop.steps_per_epoch=1000",
+          "--config.stage_overrides.main.loop.num_train_steps=2000"],
+    # D with the stereo pairs masked by the occlusion check (edges.md: most of Motorcycle's error is occluded
+    # background given the foreground's disparity)
+    "H": ["--config.stage_overrides.coarse.loop.num_train_steps=9000",
+          "--config.stage_overrides.coarse.loop.steps_per_epoch=750",
+          "--config.stage_overrides.main.loop.num_train_steps=1000",
+          "--config.loss.stereo_occlusion=True"],
+    # G with the stereo pairs masked
+    "I": ["--config.stage_overrides.coarse.loop.num_train_steps=12000",
+          "--config.stage_overrides.coarse.loop.steps_per_epoch=1000",
+          "--config.stage_overrides.main.loop.num_train_steps=2000",
+          "--config.loss.stereo_occlusion=True"],
 }
 
 
