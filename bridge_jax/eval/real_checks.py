@@ -477,7 +477,7 @@ def build(check: str, *, per_photo: int = 3, synthetic_num: int = 16, limit: Opt
         return heldout_synthetic(synthetic_num if limit is None else min(limit, synthetic_num))
     if check == "kept_out":
         return kept_out(synthetic_num, limit=limit)
-    sets = {"homography": lambda: homography_set(per_photo), "shifts": shift_set, "zooms": zoom_set}
+    sets = {"homography": lambda: homography_set(per_photo, limit=limit), "shifts": shift_set, "zooms": zoom_set}
     if check not in sets:
         raise ValueError(f"unknown real-image check {check!r}; checks: {', '.join(CHECKS)}")
     return sets[check]()[:limit]
