@@ -62,6 +62,12 @@ class PolishConfig:
     """...and at least this much below it (normalised grey levels): on a flat image every cost is float
     rounding noise (~1e-7), and no ratio of two rounding noises means anything; weakly textured windows cost
     only a few hundredths, so the margin stays well below that."""
+    select_softness: float = 0.0
+    """0 = `select_candidates` takes the cheapest acceptable candidate outright. > 0 = it takes the softmin of
+    the candidates' values, weights exp(-cost / select_softness) with the pixel's own value entered at its
+    acceptance threshold: the same answer wherever one candidate is clearly the cheapest, but continuous in the
+    images and the map, so that a tiny change of the input (another runtime's rounding) cannot flip a pixel
+    from one candidate to another."""
     smoothness_weight: float = 2.0
     """alpha of `variational_fit`: the weight of the smoothness term next to the windowed data term."""
     edge_scale: float = 0.05
@@ -88,6 +94,9 @@ class PolishConfig:
         if self.rounds < 0 or min((self.normalise_radius, self.cost_radius, self.variational_warps,
                                    self.sor_sweeps), default=0) < 0 or not self.candidate_distances:
             raise ValueError(f"PolishConfig: counts and radii must be >= 0 and candidate_distances non-empty: {self}")
+        if not self.select_softness >= 0:
+            raise ValueError(f"PolishConfig: select_softness must be >= 0 (0 = the cheapest candidate), got "
+                             f"{self.select_softness!r}")
 
 
 DEFAULT_CONFIG = PolishConfig()
@@ -191,6 +200,10 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
       `(N, H, W, 2)` maps.
     """
     own = matching_cost(norm_a, grey_b, maps, config)
+    threshold = own * config.accept_ratio - config.accept_margin  # the cost a candidate must beat
+    offsets = jnp.asarray(candidate_offsets(config.candidate_distances))
+    if config.select_softness > 0:
+        return _softmin_candidates(norm_a, grey_b, maps, mask, threshold, offsets, config)
 
     def try_one(carry, offset):
         best_cost, best = carry
@@ -199,9 +212,27 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
         better = cost < best_cost
         return (jnp.where(better, cost, best_cost), jnp.where(better[..., None], cand, best)), None
 
-    start = (own * config.accept_ratio - config.accept_margin, maps)
-    (_, best), _ = jax.lax.scan(try_one, start, jnp.asarray(candidate_offsets(config.candidate_distances)))
+    (_, best), _ = jax.lax.scan(try_one, (threshold, maps), offsets)
     return best
+
+
+def _softmin_candidates(norm_a, grey_b, maps, mask, threshold, offsets, config: PolishConfig) -> jax.Array:
+    """`select_candidates` with `config.select_softness` = t > 0: sum_i w_i v_i / sum_i w_i over the pixel's own
+    value (cost: `threshold`) and its candidates, w_i = exp(-(cost_i - min cost) / t). Accumulated as a running
+    softmin over the scan (the minimum so far rescales the sums), so memory stays that of one candidate."""
+    t = config.select_softness
+
+    def try_one(carry, offset):
+        low, total, weighted = carry
+        cand = _shifted(maps, offset[0], offset[1]) * mask
+        cost = matching_cost(norm_a, grey_b, cand, config)
+        new_low = jnp.minimum(low, cost)
+        rescale, w = jnp.exp((new_low - low) / t), jnp.exp((new_low - cost) / t)
+        return (new_low, total * rescale + w, weighted * rescale[..., None] + w[..., None] * cand), None
+
+    start = (threshold, jnp.ones_like(threshold), maps)
+    (_, total, weighted), _ = jax.lax.scan(try_one, start, offsets)
+    return weighted / total[..., None]
 
 
 # ----------------------------------------------------------------------------- variational fit

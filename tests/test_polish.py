@@ -162,6 +162,51 @@ def test_candidate_selection_repairs_a_bled_motion_boundary(rng):
     assert polish.candidate_offsets().shape == (32, 2)
 
 
+def test_soft_selection_is_the_softmin_of_the_candidates(rng):
+    """`select_softness` = t: each pixel's value is sum w_i v_i / sum w_i over its own value, entered at its
+    acceptance threshold (ratio x own cost - margin), and its 32 candidates, w_i = exp(-cost_i / t); here
+    computed from the candidates' costs in numpy, in float64, all at once instead of the running rescaled sums."""
+    a = cv2.GaussianBlur(rng.uniform(size=(40, 56)).astype(np.float32), (0, 0), 1.0)
+    b = np.roll(a, 2, axis=1)
+    maps = rng.normal(2.0, 3.0, size=(1, 40, 56, 2)).astype(np.float32)
+    norm_a, grey_b, mask = polish.normalise_locally(jnp.asarray(a)[None]), jnp.asarray(b)[None], jnp.ones((1, 1, 1, 2))
+    config = polish.PolishConfig(select_softness=0.05)
+    own = np.asarray(polish.matching_cost(norm_a, grey_b, jnp.asarray(maps), config), np.float64)
+    costs, values = [own * config.accept_ratio - config.accept_margin], [maps.astype(np.float64)]
+    for dx, dy in polish.candidate_offsets(config.candidate_distances):
+        rows, cols = np.clip(np.arange(40) + dy, 0, 39), np.clip(np.arange(56) + dx, 0, 55)
+        cand = maps[:, rows][:, :, cols]
+        costs.append(np.asarray(polish.matching_cost(norm_a, grey_b, jnp.asarray(cand), config), np.float64))
+        values.append(cand.astype(np.float64))
+    costs = np.stack(costs)
+    w = np.exp(-(costs - costs.min(0)) / config.select_softness)
+    expected = (w[..., None] * np.stack(values)).sum(0) / w.sum(0)[..., None]
+    out = np.asarray(polish.select_candidates(norm_a, grey_b, jnp.asarray(maps), mask, config))
+    np.testing.assert_allclose(out, expected, atol=2e-4)
+    assert np.abs(out - maps).max() > 1.0  # the blend moved pixels: the check is not of an unchanged map
+
+
+def test_soft_selection_keeps_clear_choices_and_is_continuous(rng):
+    """On the bled boundary every choice is clear: a small softness repairs it as the hard choice does. A
+    change of 1e-4 px in the input map then moves the softly selected map by a few 1e-4 px at most, where the
+    hard choice is only piecewise constant in it (a near tie flips a pixel from one candidate to another)."""
+    a, b, maps, (y0, y1, x0, x1) = _bled_boundary(rng)
+    norm_a, grey_b, mask = polish.normalise_locally(jnp.asarray(a)[None]), jnp.asarray(b)[None], jnp.ones((1, 1, 1, 2))
+    soft = polish.PolishConfig(select_softness=1e-3)
+    hard = np.asarray(polish.select_candidates(norm_a, grey_b, jnp.asarray(maps)[None], mask))[0]
+    out = np.asarray(polish.select_candidates(norm_a, grey_b, jnp.asarray(maps)[None], mask, soft))[0]
+    np.testing.assert_allclose(out[y0 - 6:y0 - 2, x0 + 4:x1 - 4], hard[y0 - 6:y0 - 2, x0 + 4:x1 - 4], atol=1e-3)
+    np.testing.assert_allclose(out[y0 + 6:y1 - 6, x0 + 6:x1 - 6], hard[y0 + 6:y1 - 6, x0 + 6:x1 - 6], atol=1e-3)
+    nudged = maps + rng.normal(0, 1e-4, maps.shape).astype(np.float32)
+    moved = np.asarray(polish.select_candidates(norm_a, grey_b, jnp.asarray(nudged)[None], mask,
+                                                polish.PolishConfig(select_softness=0.05)))[0]
+    base = np.asarray(polish.select_candidates(norm_a, grey_b, jnp.asarray(maps)[None], mask,
+                                               polish.PolishConfig(select_softness=0.05)))[0]
+    assert np.abs(moved - base).max() < 5e-3, np.abs(moved - base).max()
+    with pytest.raises(ValueError, match="select_softness"):
+        polish.PolishConfig(select_softness=-0.01)
+
+
 def test_the_polish_keeps_a_repaired_motion_boundary_sharp(rng):
     """The whole polish on the bled boundary: above the square the background's motion comes back and stays
     within a few hundredths of a pixel of it up to 2 px from the square's edge, where the robust smoothness
