@@ -189,7 +189,8 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
                       config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """Each pixel's map value replaced by the best of its neighbours' (`candidate_offsets` of
     `config.candidate_distances`) where that one matches clearly better (cost < `config.accept_ratio` x its own -
-    `config.accept_margin`; then the cheapest wins).
+    `config.accept_margin`; then the cheapest wins; with `config.select_softness` > 0 a softmin of them instead,
+    `_softmin_candidates`).
 
     Args:
       norm_a: `(N, H, W)` grey image `a`, locally normalised (`normalise_locally`).
