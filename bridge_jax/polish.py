@@ -208,13 +208,18 @@ def select_candidates(norm_a: jax.Array, grey_b: jax.Array, maps: jax.Array, mas
 
     def try_one(carry, offset):
         best_cost, best = carry
-        cand = _shifted(maps, offset[0], offset[1]) * mask
-        cost = matching_cost(norm_a, grey_b, cand, config)
+        cand, cost = _candidate(norm_a, grey_b, maps, mask, offset, config)
         better = cost < best_cost
         return (jnp.where(better, cost, best_cost), jnp.where(better[..., None], cand, best)), None
 
     (_, best), _ = jax.lax.scan(try_one, (threshold, maps), offsets)
     return best
+
+
+def _candidate(norm_a, grey_b, maps, mask, offset, config: PolishConfig) -> tuple[jax.Array, jax.Array]:
+    """(the map read `offset` (dx, dy) away, kept to the row's components; its `matching_cost`)."""
+    cand = _shifted(maps, offset[0], offset[1]) * mask
+    return cand, matching_cost(norm_a, grey_b, cand, config)
 
 
 def _softmin_candidates(norm_a, grey_b, maps, mask, threshold, offsets, config: PolishConfig) -> jax.Array:
@@ -225,8 +230,7 @@ def _softmin_candidates(norm_a, grey_b, maps, mask, threshold, offsets, config: 
 
     def try_one(carry, offset):
         low, total, weighted = carry
-        cand = _shifted(maps, offset[0], offset[1]) * mask
-        cost = matching_cost(norm_a, grey_b, cand, config)
+        cand, cost = _candidate(norm_a, grey_b, maps, mask, offset, config)
         new_low = jnp.minimum(low, cost)
         rescale, w = jnp.exp((new_low - low) / t), jnp.exp((new_low - cost) / t)
         return (new_low, total * rescale + w, weighted * rescale[..., None] + w[..., None] * cand), None
@@ -345,6 +349,13 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     return jax.lax.fori_loop(0, config.variational_warps, warp_iteration, maps * mask)
 
 
+def grey_images(pairs: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(grey `a`, grey `b`, grey `a` locally normalised), each `(N, H, W)`, of `(N, H, W, 6)` pairs: what both
+    steps of the polish compare."""
+    grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
+    return grey_a, grey_b, normalise_locally(grey_a, config.normalise_radius, config.contrast_floor)
+
+
 def polish_maps(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
                 config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
     """The "photometric" polish: `config.rounds` rounds of `select_candidates`, then `variational_fit`
@@ -360,8 +371,7 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
     """
     pairs, maps = pairs.astype(jnp.float32), maps.astype(jnp.float32)
     flow_rows = flow_rows.astype(jnp.float32)
-    grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
-    norm_a = normalise_locally(grey_a, config.normalise_radius, config.contrast_floor)
+    grey_a, grey_b, norm_a = grey_images(pairs, config)
     mask = component_mask(flow_rows)
     maps = maps * mask
     for _ in range(config.rounds):

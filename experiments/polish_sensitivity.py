@@ -51,13 +51,13 @@ def polish_function(name: str, rows, mask):
         cfg = dataclasses.replace(base, select_softness=soft)
 
         def select(pairs, maps):
-            grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
-            return polish.select_candidates(polish.normalise_locally(grey_a), grey_b, maps, mask, cfg)
+            _, grey_b, norm_a = polish.grey_images(pairs, cfg)
+            return polish.select_candidates(norm_a, grey_b, maps, mask, cfg)
         return jax.jit(select)
     elif name == "fit":
         def fit(pairs, maps):
-            grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
-            return polish.variational_fit(polish.normalise_locally(grey_a), grey_a, grey_b, maps, rows, base)
+            grey_a, grey_b, norm_a = polish.grey_images(pairs, base)
+            return polish.variational_fit(norm_a, grey_a, grey_b, maps, rows, base)
         return jax.jit(fit)
     else:
         raise SystemExit(f"polish_sensitivity.py: unknown --configs entry {name!r} (see --help)")
@@ -78,9 +78,8 @@ def main() -> None:
     from bridge_jax.eval import real_checks
     from bridge_jax.resizing import map_to_input_resolution
 
-    card = inference.load_predictor(args.model)
-    test_time = card.test_time.network_part
-    pred = inference.load_predictor(args.model, test_time=test_time)
+    pred = inference.load_predictor(args.model)
+    test_time = pred.test_time = pred.test_time.network_part  # the card's refine and symmetry, no polish
     moto = real_checks.motorcycle()
     flows = real_checks.homography_set(per_photo=1, limit=2)
     cases = [("stereo", moto["left"], moto["right"], moto)] + [("flow", p["frame_t"], p["frame_t1"], p) for p in flows]
