@@ -4,9 +4,11 @@ Layouts:
 - **params-only** (convert / export / evaluate input): `DIR/model.json` (the model config, with "name") +
   `DIR/params/` (an orbax PyTree checkpoint of the params dict).
 - **training workdir**: `WORKDIR/model.json`, `WORKDIR/config.json`, `WORKDIR/checkpoints/<step>/` written by an
-  orbax CheckpointManager with items `state` = {"params", "opt_state", "step", "rng"} and `data`.
+  orbax CheckpointManager with items `state` = {"params", "opt_state", "step", "rng"} (+ "ema_params" when the
+  run keeps a moving average of its params) and `data`.
 
-`read_params(path)` accepts a params-only dir, a training workdir (newest readable step) or a step dir.
+`read_params(path)` accepts a params-only dir, a training workdir (newest readable step) or a step dir; from a
+training checkpoint it reads the moving average where there is one (`MODEL_PARAMS`).
 
 Broken checkpoints (truncated or garbled files, an empty step dir, a NaN train state) are never deleted: the
 readers fall back to the newest step that reads completely and say which step they skipped and why
@@ -54,6 +56,11 @@ grain_ckpt = _LazyModule("grain.checkpoint")
 MODEL_JSON = "model.json"
 CONFIG_JSON = "config.json"  # a training workdir's config (beside its model.json)
 PARAMS_DIR = "params"
+# The train state's entries a model is read from: the params' moving average where the run kept one
+# (`OptimizerConfig.ema_decay` > 0: what validation scored and what the next stage of a recipe starts from), else
+# the params. `MODEL_PARAMS` is the subtree name that picks between them when a checkpoint is read.
+EMA_PARAMS = "ema_params"
+MODEL_PARAMS = "<model params>"
 CHECKPOINTS_DIR = "checkpoints"
 RECIPE_JSON = "recipe.json"  # a recipe workdir (`bridge_jax.recipe`): its stages, each a workdir under stages/
 STAGES_DIR = "stages"
@@ -217,12 +224,15 @@ def _quiet_item_dir_metadata():
 
 
 def _restore_tree(path: Path, subtree: str | None = None) -> Any:
-    """Restore an orbax PyTree checkpoint at `path` as numpy arrays (optionally only the top-level `subtree`)."""
+    """Restore an orbax PyTree checkpoint at `path` as numpy arrays (optionally only the top-level `subtree`;
+    `MODEL_PARAMS` = the params that stand for the model: "ema_params" where the state keeps them, else "params")."""
     with _quiet_item_dir_metadata(), ocp.PyTreeCheckpointer() as ckptr:
         meta = ckptr.metadata(path)
         tree = getattr(meta.item_metadata if hasattr(meta, "item_metadata") else meta, "tree", None)
         if tree is None:  # orbax logs a warning and returns no item metadata for a missing / garbled _METADATA
             raise ValueError(f"{path}: unreadable checkpoint metadata (a file in it is missing, truncated or garbled)")
+        if subtree == MODEL_PARAMS:
+            subtree = EMA_PARAMS if isinstance(tree, dict) and EMA_PARAMS in tree else "params"
         if subtree is not None:
             if not isinstance(tree, dict) or subtree not in tree:
                 keys = list(tree) if isinstance(tree, dict) else type(tree).__name__
@@ -288,9 +298,9 @@ def resolve_checkpoint(path: str | os.PathLike) -> tuple[Path, Path, str | None]
         return p / MODEL_JSON, p / PARAMS_DIR, None
     if (p / CHECKPOINTS_DIR).is_dir():
         step = _latest_step(p / CHECKPOINTS_DIR)
-        return p / MODEL_JSON, step / STATE_ITEM, "params"
+        return p / MODEL_JSON, step / STATE_ITEM, MODEL_PARAMS
     if p.parent.name == CHECKPOINTS_DIR and p.name.isdigit():
-        return p.parent.parent / MODEL_JSON, p / STATE_ITEM, "params"
+        return p.parent.parent / MODEL_JSON, p / STATE_ITEM, MODEL_PARAMS
     raise ValueError(f"{path} is not a bridge_jax checkpoint: expected a params dir (model.json + params/), "
                      f"a training workdir (model.json + checkpoints/<step>/) or a step dir checkpoints/<step>")
 
@@ -349,7 +359,7 @@ def _read_newest_step(workdir: Path, want: Any, model_name: str, require_finite:
         found = None
         for step_dir in listing:
             try:
-                found = _read_params(step_dir / STATE_ITEM, "params", want, model_name, require_finite)
+                found = _read_params(step_dir / STATE_ITEM, MODEL_PARAMS, want, model_name, require_finite)
                 break
             except (ValueError, FileNotFoundError) as e:
                 if not step_dir.is_dir() or (isinstance(e, FileNotFoundError) and step_dir not in retried):
@@ -802,5 +812,6 @@ def find_train_step_dir(path: str | os.PathLike) -> str | None:
 
 
 def restore_train_params(step_dir: str | os.PathLike) -> dict:
-    """Only the `params` of a training step dir, as numpy arrays."""
-    return _restore_tree(Path(step_dir).absolute() / STATE_ITEM, "params")
+    """The params that stand for the model of a training step dir (`MODEL_PARAMS`: the moving average where the
+    run kept one), as numpy arrays."""
+    return _restore_tree(Path(step_dir).absolute() / STATE_ITEM, MODEL_PARAMS)

@@ -136,9 +136,9 @@ def accumulate(acc, params, x, dmaps, tasks, *, net: Network, student: bool = Fa
     return jax.tree.map(jnp.add, acc, g)
 
 
-def update(state, grads, loss, terms, *, tx, schedule):
+def update(state, grads, loss, terms, *, tx, schedule, ema_decay=0.0):
     count_trace("micro/update")
-    return apply_gradients(state, loss, terms, grads, tx, schedule)
+    return apply_gradients(state, loss, terms, grads, tx, schedule, ema_decay)
 
 
 class MicroBatchedStep:
@@ -146,7 +146,7 @@ class MicroBatchedStep:
     with `micro_batch` pair-forwards per device per call (see the module docstring). `state` is donated."""
 
     def __init__(self, net: Network, loss_cfg: losses.LossConfig, tx, schedule, *, micro_batch: int,
-                 num_devices: int = 1, state_sharding=None, batch_sharding=None):
+                 num_devices: int = 1, state_sharding=None, batch_sharding=None, ema_decay: float = 0.0):
         if int(micro_batch) <= 0:
             raise ValueError(f"micro_batch must be positive, got {micro_batch}")
         self.net = net
@@ -167,7 +167,8 @@ class MicroBatchedStep:
         self._zeros = jax.jit(zeros_like_params, **shard(out_shardings=param_sharding))
         self._accumulate = jax.jit(functools.partial(accumulate, net=net), donate_argnums=(0,), static_argnums=(4,))
         # Only the state is donated: the gradient accumulator has no output of its shape left to alias.
-        self._update = jax.jit(functools.partial(update, tx=tx, schedule=schedule), donate_argnums=(0,),
+        self._update = jax.jit(functools.partial(update, tx=tx, schedule=schedule, ema_decay=ema_decay),
+                               donate_argnums=(0,),
                                **shard(out_shardings=(state_sharding, rep)))
 
     def _tasks(self, i: int) -> tuple[str, ...]:

@@ -131,6 +131,7 @@ FLOAT_RULES: dict[str, tuple[float, float, str, str]] = {
     "adam_b2": (0.0, 1.0, "[)", "Adam's second-moment decay"),
     "adam_eps": (0.0, math.inf, "()", "keeps Adam's denominator above 0 where a gradient is 0"),
     "clip_grad_norm": (0.0, math.inf, "[)", "a global L2 norm; 0 = off"),
+    "ema_decay": (0.0, 1.0, "[)", "the moving average's decay; 0 = off, 1 would never move"),
     # The loss (losses.total_loss, geometry.occlusion_mask): weights and edge constants of eq. 5-13.
     "loss.alpha": (0.0, 1.0, "[]", "the SSIM share of the SSIM + L1 photometric error"),
     "loss.beta": (0.0, math.inf, "[)", "edge constant of exp(-beta |dI|); 0 = no edge weighting"),
@@ -520,8 +521,9 @@ def build_step(run: Run, net: Network, tx, schedule, *, state_sharding=None, bat
     if run.micro_batch:
         return MicroBatchedStep(net, run.loss, tx, schedule, micro_batch=run.micro_batch,
                                 num_devices=run.num_devices, state_sharding=state_sharding,
-                                batch_sharding=batch_sharding)
-    return make_train_step(net, run.loss, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
+                                batch_sharding=batch_sharding, ema_decay=run.optimizer.ema_decay)
+    return make_train_step(net, run.loss, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding,
+                           ema_decay=run.optimizer.ema_decay)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -187,15 +187,21 @@ def describe_changes(changes: dict[str, tuple[Any, Any]], limit: int = 8) -> str
     return ", ".join(parts) + (f" and {more} more" if more > 0 else "")
 
 
-def _config_changes(run: setup.Run, workdir: str) -> dict[str, tuple[Any, Any]]:
-    """`config_changes` from the config.json of `workdir` (the config it was last started with) to this run's
-    config; {} without a readable config.json."""
+def _workdir_config(workdir: str) -> dict:
+    """The config.json of `workdir` (the config it was last started with); {} when there is none readable."""
     try:
         with open(os.path.join(workdir, checkpointing.CONFIG_JSON)) as f:
             old = json.load(f)
     except (OSError, ValueError):
         return {}
-    return config_changes(old, json.loads(json.dumps(run.config_json))) if isinstance(old, dict) else {}
+    return old if isinstance(old, dict) else {}
+
+
+def _config_changes(run: setup.Run, workdir: str) -> dict[str, tuple[Any, Any]]:
+    """`config_changes` from the config.json of `workdir` (the config it was last started with) to this run's
+    config; {} without a readable config.json."""
+    old = _workdir_config(workdir)
+    return config_changes(old, json.loads(json.dumps(run.config_json))) if old else {}
 
 
 def _in_use_error(workdir: str, holder: str) -> ConfigError:
@@ -244,6 +250,15 @@ def _check_workdir(run: setup.Run, workdir: str, allow_config_change: bool = Fal
         if prev != json.loads(json.dumps(want)):
             raise ConfigError(f"--workdir={workdir} holds a run of a different model ({prev}); this config builds "
                               f"{want}. Use a new workdir (or the same model config) to resume.")
+    if resuming:
+        # the moving average is part of the train state: its checkpoints cannot be resumed with it switched on or off
+        before = float(_workdir_config(workdir).get("ema_decay", 0.0) or 0.0)
+        if (before > 0) != (run.optimizer.ema_decay > 0):
+            raise ConfigError(f"config.ema_decay={run.optimizer.ema_decay!r}: --workdir={workdir} was trained with "
+                              f"ema_decay={before!r}, and its checkpoints "
+                              f"{'hold' if before > 0 else 'do not hold'} a moving average of the params; resume "
+                              f"with the average {'on' if before > 0 else 'off'}, or train in a new workdir "
+                              "(--config.init_from=" + workdir + " starts from its params)")
     if resuming and not allow_config_change:
         refused = {k: v for k, v in _config_changes(run, workdir).items() if not _may_change_on_resume(k)}
         if refused:
@@ -514,7 +529,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
     net = run.model.network(graphdef)
 
     ##### Shard & transfer #####################################################################################
-    host_state = jax.tree.map(np.asarray, train_step.create_train_state(params, tx, jax.random.key_data(state_rng)))
+    host_state = jax.tree.map(np.asarray, train_step.create_train_state(params, tx, jax.random.key_data(state_rng),
+                                                                        ema=run.optimizer.ema_decay > 0))
     mesh, state_sharding, batch_sharding = setup.data_parallel(run, host_state)
     state = jax.tree.map(lambda x, s: jax.make_array_from_callback(x.shape, s, lambda idx: x[idx]),
                          host_state, state_sharding)
@@ -531,7 +547,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         changes = _config_changes(run, workdir) if resuming else {}  # read before config.json is rewritten
         os.makedirs(workdir, exist_ok=True)  # processes > 0 hold no lock file
         log_dir = stage.log_dir if stage else workdir  # a recipe's stages log into the recipe's workdir
-        stage_fields = ({"stage": stage.name, "stage_index": stage.index + 1, "num_stages": stage.count}
+        stage_fields = ({"stage": stage.name, "stage_index": stage.index + 1, "num_stages": stage.count,
+                         "stage_seconds_before": round(stage.seconds_before, 1)}
                         if stage else {})
         run_status = RunStatus(log_dir, is_main, step=0, num_steps=num_steps, **stage_fields)
     except BaseException:
@@ -556,7 +573,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
 
         ##### Update step and validation ###########################################################################
         step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
-        predictor = inference.Predictor(graphdef, state["params"], size=inference.WorkingSize(run.height, run.width),
+        # validation, and every reader of the checkpoints, see the moving average when the run keeps one
+        predictor = inference.Predictor(graphdef, train_step.model_params(state), size=inference.WorkingSize(run.height, run.width),
                                         dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                         mesh=mesh)
         logger = MetricsLogger(log_dir, is_main, resume_step=start_step,
@@ -571,7 +589,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
         def run_validation(step, log_metrics=True, first_only=False):
-            res, panel = _validate_data(predictor, state["params"], val_data, max(1, run.eval.batch), first_only)
+            res, panel = _validate_data(predictor, train_step.model_params(state), val_data, max(1, run.eval.batch), first_only)
             if log_metrics:
                 logger.scalars(step, res, kind="val")
                 if is_main:
@@ -766,12 +784,13 @@ def _run_stages(runs: dict[str, setup.Run], workdir: str, config_name: Optional[
                   flush=True)
         else:
             t0 = time.time()
+            before = recipe.seconds_before(workdir, name)  # a resumed stage: what its earlier runs took
             result = train_and_evaluate(runs[name], recipe.stage_dir(workdir, name), config_name=config_name,
-                                        stage=recipe.StageRun(name, i, len(names), offset, workdir),
+                                        stage=recipe.StageRun(name, i, len(names), offset, workdir, before),
                                         allow_config_change=allow_config_change)
             if result["interrupted"]:
                 return dict(result, stage=name, step=offset + result["step"], workdir=workdir, stages=stages)
-            done = {"steps": result["step"], "seconds": round(time.time() - t0, 1),
+            done = {"steps": result["step"], "seconds": round(before + time.time() - t0, 1),
                     "validation": result["validation"]}
             if jax.process_index() == 0:
                 recipe.mark_finished(workdir, name, **done)

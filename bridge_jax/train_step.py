@@ -4,14 +4,17 @@ The train state is a plain pytree
 
     {"params": ..., "opt_state": ..., "step": int32 (), "rng": uint32 (2,)}
 
+(plus "ema_params", the exponential moving average of the params, when `OptimizerConfig.ema_decay` > 0)
+
 and one training step on a batch of cycles (B, 4, H, W, 3) float32 in [0, 1] (`train_step`) is:
 
 1. the B * 2P ordered pair inputs (`cycle.batch_pair_inputs`; P = 4 pairs for flow+stereo),
 2. the network on all of them (forward and backward maps, 4 scales),
 3. the cycle loss (`losses.cycle_loss`, vmapped over cycles) and its gradient (with self-supervision on, the
    network also runs on the cropped cycles: `student_inputs`),
-4. Adam with the step-based MultiStepLR schedule, and
-5. a guard: a non-finite loss, gradient, update or new parameter leaves the state unchanged (the step is "skipped").
+4. Adam with the step-based MultiStepLR schedule,
+5. with `ema_decay` > 0, the moving average of the new params (`ema_update`), and
+6. a guard: a non-finite loss, gradient, update or new parameter leaves the state unchanged (the step is "skipped").
 
 `make_train_step` jits it once per input shape with the state donated (the default on GPU/TPU);
 `bridge_jax.micro_batch` computes the same update maps-first in small jitted pieces for XLA:CPU, and
@@ -60,12 +63,18 @@ class OptimizerConfig:
     # Clip the gradient to this global L2 norm before Adam (0 = off, the paper). Beyond the paper: large
     # early gradients of a correlation model can otherwise throw its maps far from zero motion.
     clip_grad_norm: float = 0.0  # clip the gradient to this global L2 norm (0 = off, the paper)
+    # Beyond the paper: keep an exponential moving average of the params (`ema_update`) and let it stand for the
+    # model (every reader of a checkpoint, validation, the next stage of a recipe). 0 = off.
+    ema_decay: float = 0.0  # decay of the params' moving average (e.g. 0.99); 0 = no average
+
 
     def __post_init__(self):
         if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr must be a finite number > 0, got {self.lr!r}")
         if not self.clip_grad_norm >= 0:
             raise ValueError(f"clip_grad_norm must be >= 0 (0 = off), got {self.clip_grad_norm!r}")
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1) (0 = off), got {self.ema_decay!r}")
 
 
 def lr_schedule(opt: OptimizerConfig, steps_per_epoch: int) -> optax.Schedule:
@@ -96,22 +105,51 @@ def make_optimizer(opt: OptimizerConfig, steps_per_epoch: int):
 # Train state and the update
 # ##########################################################################################################
 
-def create_train_state(params, tx, rng) -> dict:
-    """The train state pytree; params are float32 (also under bf16 compute).
+def create_train_state(params, tx, rng, *, ema: bool = False) -> dict:
+    """The train state pytree; params are float32 (also under bf16 compute). With `ema`, "ema_params" starts as
+    a copy of the params.
 
     Built by one jitted function: run eagerly, the optimiser's per-leaf zeros compiled one small XLA program per
     parameter shape (~0.7 s of every training start on 2 cores)."""
 
     def build(params, rng):
         params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float32), params)
-        return {"params": params, "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
-                "rng": jnp.asarray(rng, jnp.uint32)}
+        state = {"params": params, "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
+                 "rng": jnp.asarray(rng, jnp.uint32)}
+        if ema:
+            state["ema_params"] = jax.tree.map(jnp.copy, params)
+        return state
 
     return jax.jit(build)(params, rng)
 
 
-def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
-    """Adam update with the non-finite guard. Returns (new_state, metrics).
+def ema_rate(step, decay: float):
+    """The weight of the old average at update number `step` (0-based): decay (1 - decay^step) / (1 - decay^(step+1)).
+
+    This is the bias-corrected moving average (as `optax.ema(debias=True)`): after T updates the average is
+    sum_t decay^(T-t) p_t / sum_t decay^(T-t) over the params p_1 .. p_T after each update, so the params a run
+    started from get no weight (rate 0 at the first update) and the average spans about 1 / (1 - decay) updates
+    however long the run is."""
+    step = jnp.asarray(step, jnp.float32)
+    d = jnp.float32(decay)
+    return d * (1.0 - d ** step) / (1.0 - d ** (step + 1.0))
+
+
+def ema_update(ema_params, new_params, step, decay: float):
+    """ema <- r * ema + (1 - r) * new params, r = `ema_rate(step, decay)`; `step` = the update's number before
+    it is applied (the state's "step")."""
+    r = ema_rate(step, decay)
+    return jax.tree.map(lambda e, p: r * e + (1.0 - r) * p, ema_params, new_params)
+
+
+def model_params(state: dict):
+    """The params that stand for the model of a train state: the moving average when the state keeps one."""
+    return state.get("ema_params", state["params"])
+
+
+def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule, ema_decay: float = 0.0):
+    """Adam update (and, when the state keeps "ema_params", their `ema_update` with `ema_decay`) with the
+    non-finite guard. Returns (new_state, metrics).
 
     If the loss, the gradient, the update or the new params hold a NaN/Inf the returned state equals `state`
     (nothing moves, not even `step` or the optimiser's moments) and metrics["nonfinite"] = 1. Checking the
@@ -130,6 +168,10 @@ def apply_gradients(state: dict, loss, terms: dict, grads, tx, schedule):
           & jnp.isfinite(optax.tree.norm(new_params)))
     new_state = {"params": new_params, "opt_state": new_opt_state, "step": state["step"] + 1,
                  "rng": jax.random.fold_in(state["rng"], 0)}
+    if "ema_params" in state:
+        if not 0 < ema_decay < 1:
+            raise ValueError(f"the train state keeps ema_params but ema_decay={ema_decay!r} (expected 0 < decay < 1)")
+        new_state["ema_params"] = ema_update(state["ema_params"], new_params, state["step"], ema_decay)
     new_state = jax.tree.map(lambda new, old: jnp.where(ok, new, old), new_state, state)
     metrics = {"loss": loss, **{f"loss/{k}": v for k, v in terms.items()},
                "grad_norm": grad_norm, "param_norm": optax.tree.norm(new_state["params"]),
@@ -170,19 +212,20 @@ def loss_and_grads(params, cycles, *, net: Network, loss_cfg: losses.LossConfig,
     return jax.value_and_grad(objective, has_aux=True)(params)
 
 
-def train_step(state: dict, cycles, *, net: Network, loss_cfg: losses.LossConfig, tx, schedule):
+def train_step(state: dict, cycles, *, net: Network, loss_cfg: losses.LossConfig, tx, schedule,
+               ema_decay: float = 0.0):
     """One training step: `(state, cycles (B, 4, H, W, 3)) -> (new_state, metrics)` (a pure function)."""
     count_trace("train_step")
     (loss, terms), grads = loss_and_grads(state["params"], cycles, net=net, loss_cfg=loss_cfg, step=state["step"],
                                           rng=state["rng"])
-    return apply_gradients(state, loss, terms, grads, tx, schedule)
+    return apply_gradients(state, loss, terms, grads, tx, schedule, ema_decay)
 
 
 def make_train_step(net: Network, loss_cfg: losses.LossConfig, tx, schedule, *, state_sharding=None,
-                    batch_sharding=None):
+                    batch_sharding=None, ema_decay: float = 0.0):
     """`train_step` jitted (one compilation per input shape) with the state donated, optionally sharded: the
     state as `state_sharding`, the batch as `batch_sharding`, the metrics replicated."""
-    fn = functools.partial(train_step, net=net, loss_cfg=loss_cfg, tx=tx, schedule=schedule)
+    fn = functools.partial(train_step, net=net, loss_cfg=loss_cfg, tx=tx, schedule=schedule, ema_decay=ema_decay)
     kw = {}
     if state_sharding is not None:
         replicated = NamedSharding(sharding_mesh(state_sharding), P())
@@ -196,5 +239,5 @@ def sharding_mesh(sharding_tree) -> jax.sharding.Mesh:
 
 
 __all__ = ["TRACE_COUNTS", "OptimizerConfig", "lr_schedule", "make_optimizer", "create_train_state",
-           "apply_gradients", "crop_key", "student_inputs", "loss_and_grads", "train_step", "make_train_step",
+           "ema_rate", "ema_update", "model_params", "apply_gradients", "crop_key", "student_inputs", "loss_and_grads", "train_step", "make_train_step",
            "sharding_mesh"]
