@@ -124,3 +124,31 @@ def test_switching_the_average_on_or_off_on_resume_is_refused(tmp_path):
     train.train_and_evaluate(tiny_config(**{"num_train_steps": 2, "checkpoint_every": 2, "ema_decay": 0.9}), on)
     with pytest.raises(train.ConfigError, match=r"config.ema_decay=0.0: .* hold a moving average"):
         train.train_and_evaluate(tiny_config(num_train_steps=4, checkpoint_every=2), on)
+
+
+@pytest.mark.parametrize("micro_batch", [0, 4])
+def test_both_training_steps_keep_the_average(micro_batch):
+    """The plain jitted step and the micro-batched one (XLA:CPU's default) both update "ema_params": after three
+    steps it is the numpy average of the params after each step."""
+    from bridge_jax import losses, models, network
+    from bridge_jax.micro_batch import MicroBatchedStep
+    from tests.train_helpers import H, W
+
+    graphdef, params = network.init_params(jax.random.key(0), models.model_config("resnet_md_tiny"), False)
+    tx, schedule = train_step.make_optimizer(train_step.OptimizerConfig(lr=1e-3), 100)
+    net, lcfg = network.Network(graphdef), losses.LossConfig()
+    state = train_step.create_train_state(params, tx, jax.random.key_data(jax.random.key(2)), ema=True)
+    if micro_batch:
+        step = MicroBatchedStep(net, lcfg, tx, schedule, micro_batch=micro_batch, ema_decay=0.7)
+    else:
+        step = train_step.make_train_step(net, lcfg, tx, schedule, ema_decay=0.7)
+    after = []
+    for seed in range(3):
+        cycles = jnp.asarray(np.random.default_rng(seed).random((1, 4, H, W, 3), dtype=np.float32))
+        state, metrics = step(state, cycles)
+        assert int(metrics["nonfinite"]) == 0
+        after.append(jax.tree.map(np.asarray, state["params"]))
+    want = jax.tree.map(lambda *ps: _numpy_average(list(ps), 0.7), *after)
+    got = jax.tree.map(np.asarray, state["ema_params"])
+    assert _close(got, want, 1e-6)
+    assert not _close(got, after[-1], 1e-6)  # the average is not the last params
