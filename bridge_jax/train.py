@@ -28,7 +28,8 @@ with exact ground truth, or your own held-out frames from `config.data.val_dir`,
 Workdir layout (`bridge_jax.workdir`):
     config.json, model.json         the run's config (as last started: a resume is compared with it) and the
                                     model description (params-only loaders)
-    checkpoints/<step>/{state,data} orbax: train state + grain iterator state
+    checkpoints/<step>/{state,data} orbax: train state (with `config.ema_decay` > 0 also the params' moving
+                                    average, which every reader takes for the model) + grain iterator state
     metrics.jsonl                   one JSON object per log/eval event (one run's history, also after resumes)
     tensorboard/                    tensorboardX event files (scalars, images)
     images/                         the same pictures as PNG files
