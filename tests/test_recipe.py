@@ -104,8 +104,10 @@ def test_long_recipe_declares_its_stages_in_order():
     assert recipe.stage_names(ft) == ("finetune",)
     ft_cfg, last = recipe.stage_config(ft, "finetune"), recipe.stage_config(c, "hires")
     assert (ft_cfg.init_from, ft_cfg.data.source, ft_cfg.loop.eval_at_start) == ("long", "folder", True)
-    for key in ("height", "width", "lr", "global_batch"):
+    for key in ("height", "width", "global_batch"):
         assert ft_cfg[key] == last[key], key
+    # at the lr fine-tuning was measured at, without the last stage's moving average
+    assert (ft_cfg.lr, ft_cfg.ema_decay, last.ema_decay) == (long.FINETUNE_LR, 0.0, 0.99)
     assert ft_cfg.loss.to_dict() == last.loss.to_dict()
     assert ft_cfg.data.synthetic_scene == last.data.synthetic_scene
     # the legacy chain: each stage keeps what the stages before it set
