@@ -575,7 +575,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         ##### Update step and validation ###########################################################################
         step_fn = setup.build_step(run, net, tx, schedule, state_sharding=state_sharding, batch_sharding=batch_sharding)
         # validation, and every reader of the checkpoints, see the moving average when the run keeps one
-        predictor = inference.Predictor(graphdef, train_step.model_params(state), size=inference.WorkingSize(run.height, run.width),
+        predictor = inference.Predictor(graphdef, train_step.model_params(state),
+                                        size=inference.WorkingSize(run.height, run.width),
                                         dtype=run.model.dtype, model_cfg=run.model.config, separate=run.model.separate,
                                         mesh=mesh)
         logger = MetricsLogger(log_dir, is_main, resume_step=start_step,
@@ -590,7 +591,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict | setup.Run, workdir: s
         global_shape = (run.global_batch, 4, run.height, run.width, 3)
 
         def run_validation(step, log_metrics=True, first_only=False):
-            res, panel = _validate_data(predictor, train_step.model_params(state), val_data, max(1, run.eval.batch), first_only)
+            res, panel = _validate_data(predictor, train_step.model_params(state), val_data, max(1, run.eval.batch),
+                                        first_only)
             if log_metrics:
                 logger.scalars(step, res, kind="val")
                 if is_main:

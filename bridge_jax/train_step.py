@@ -239,5 +239,6 @@ def sharding_mesh(sharding_tree) -> jax.sharding.Mesh:
 
 
 __all__ = ["TRACE_COUNTS", "OptimizerConfig", "lr_schedule", "make_optimizer", "create_train_state",
-           "ema_rate", "ema_update", "model_params", "apply_gradients", "crop_key", "student_inputs", "loss_and_grads", "train_step", "make_train_step",
+           "ema_rate", "ema_update", "model_params", "apply_gradients", "crop_key", "student_inputs",
+           "loss_and_grads", "train_step", "make_train_step",
            "sharding_mesh"]

@@ -67,7 +67,8 @@ CANDIDATES = {
           "--config.loss.stereo_occlusion=True"] + D_LAST,
     # J (long_recipe.md section 3c): the recipe's stages with the last at half its lr and without the average
     "J": ["--config.stage_overrides.hires.lr=1.25e-4", "--config.stage_overrides.hires.ema_decay=0.0"],
-    # the recipe with its last stage at twice its lr (section 3d: 2.5e-4 beat 1.25e-4)
+    # the recipe with its last stage at twice its lr (long_recipe.md section 3d: better on Motorcycle, worse on
+    # the zooms)
     "L": ["--config.stage_overrides.hires.lr=5e-4"],
 }
 
