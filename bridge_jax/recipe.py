@@ -50,9 +50,6 @@ import ml_collections
 from bridge_jax import checkpointing, configs, files
 
 RECIPE_JSON = checkpointing.RECIPE_JSON
-# the recipe's running stage: bridge_jax.workdir.STATUS_JSON (not imported: it pulls in TensorBoard and the
-# pictures, which reading a config does not need; a test checks that the two names agree)
-STATUS_JSON = "status.json"
 STAGES_DIR = checkpointing.STAGES_DIR
 FINISHED_JSON = "finished.json"
 STAGE_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
@@ -62,8 +59,8 @@ STAGE_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 class StageRun:
     """One stage of a recipe as the trainer runs it: where it logs (`log_dir`, the recipe workdir W), its name,
     its 0-based `index` of `count`, `offset`, the steps of the stages before it (so that the recipe's step
-    counter continues across stages), and `seconds_before`, what earlier, interrupted runs of this stage took
-    (`seconds_before`; written into status.json so that it adds up over several interruptions)."""
+    counter continues across stages), and `seconds_before`, what earlier, stopped runs of this stage took
+    (`workdir.stage_seconds_before`; written into status.json so that it adds up over several interruptions)."""
 
     name: str
     index: int
@@ -275,24 +272,6 @@ def finished(workdir: str, name: str) -> Optional[dict]:
             return json.load(f)
     except (OSError, ValueError):
         return None
-
-
-def seconds_before(workdir: str, name: str) -> float:
-    """The seconds earlier runs of stage `name` took before they were stopped (killed, interrupted, crashed), from
-    the recipe's status.json when it names that stage: that run's own `stage_seconds_before` plus its time from
-    its start to its last heartbeat (or its end). 0 when the status names another stage or there is none. A
-    kill -9 loses at most one heartbeat interval; the start-up before the status was first written is not counted.
-    """
-    try:
-        with open(os.path.join(workdir, STATUS_JSON)) as f:
-            status = json.load(f)
-        if not isinstance(status, dict) or status.get("stage") != name:
-            return 0.0
-        last = status.get("ended", status.get("heartbeat"))
-        own = max(0.0, float(last) - float(status["started"]))
-        return float(status.get("stage_seconds_before", 0.0)) + own
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0.0
 
 
 def mark_finished(workdir: str, name: str, steps: int, seconds: float, validation: dict) -> None:

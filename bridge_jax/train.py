@@ -787,7 +787,7 @@ def _run_stages(runs: dict[str, setup.Run], workdir: str, config_name: Optional[
                   flush=True)
         else:
             t0 = time.time()
-            before = recipe.seconds_before(workdir, name)  # a resumed stage: what its earlier runs took
+            before = workdir_mod.stage_seconds_before(workdir, name)  # a resumed stage: its earlier runs' time
             result = train_and_evaluate(runs[name], recipe.stage_dir(workdir, name), config_name=config_name,
                                         stage=recipe.StageRun(name, i, len(names), offset, workdir, before),
                                         allow_config_change=allow_config_change)

@@ -275,6 +275,22 @@ def read_status(workdir: str) -> dict:
     return status
 
 
+def stage_seconds_before(workdir: str, name: str) -> float:
+    """The seconds earlier runs of recipe stage `name` took before they were stopped (killed, interrupted,
+    crashed), from the recipe's status.json (`read_status`) when it names that stage: that run's own
+    `stage_seconds_before` plus its time from its start to its last heartbeat (or its end). 0 when the status
+    names another stage or there is none readable. A kill -9 loses at most one heartbeat interval; the start-up
+    before the status was first written is not counted."""
+    try:
+        status = read_status(workdir)
+        if status.get("stage") != name:
+            return 0.0
+        own = max(0.0, float(status.get("ended", status.get("heartbeat"))) - float(status["started"]))
+        return float(status.get("stage_seconds_before", 0.0)) + own
+    except (ValueError, KeyError, TypeError):
+        return 0.0
+
+
 def is_stale(status: dict, now: float | None = None) -> bool:
     """Whether a "running" status has missed its heartbeats (see the module docstring): its process is gone."""
     if status.get("status") != "running":

@@ -308,7 +308,7 @@ def test_sigkill_anywhere_in_long_short_resumes_bitwise(tmp_path, when):
             proc.kill()
     assert proc.returncode == -signal.SIGKILL
     assert recipe.finished(wd, "coarse") is not None and recipe.finished(wd, "hires") is None
-    killed_run = recipe.seconds_before(wd, "main")  # the killed run of stage main, from its status.json
+    killed_run = workdir_mod.stage_seconds_before(wd, "main")  # the killed run of stage main, from its status.json
     assert killed_run > 0 or when == "boundary"  # killed just as it started, it may not have written a heartbeat
     assert _run_long_short(wd).returncode == 0
     assert recipe.finished(wd, "main")["seconds"] > killed_run  # the stage's seconds include the killed run's
@@ -319,12 +319,11 @@ def test_sigkill_anywhere_in_long_short_resumes_bitwise(tmp_path, when):
 
 
 def test_a_resumed_stage_counts_the_seconds_of_its_earlier_runs(tmp_path):
-    """`recipe.seconds_before`: the seconds of earlier, stopped runs of a stage, from the recipe's status.json (its
-    start to its last heartbeat or end, plus what the runs before it had), hand-written here."""
+    """`workdir.stage_seconds_before`: the seconds of earlier, stopped runs of a stage, from the recipe's
+    status.json (its start to its last heartbeat or end, plus what the runs before it had), hand-written here."""
     wd = str(tmp_path)
-    assert recipe.STATUS_JSON == workdir_mod.STATUS_JSON
-    assert recipe.seconds_before(wd, "main") == 0.0  # no status yet
-    path = os.path.join(wd, recipe.STATUS_JSON)
+    assert workdir_mod.stage_seconds_before(wd, "main") == 0.0  # no status yet
+    path = os.path.join(wd, workdir_mod.STATUS_JSON)
 
     def status(**fields):
         with open(path, "w") as f:
@@ -332,10 +331,10 @@ def test_a_resumed_stage_counts_the_seconds_of_its_earlier_runs(tmp_path):
 
     # killed: no "ended", its last heartbeat 700 s after its start, after two earlier runs of 1234.5 s in all
     status(status="running", stage="main", started=1000.0, heartbeat=1700.0, time=1700.0, stage_seconds_before=1234.5)
-    assert recipe.seconds_before(wd, "main") == pytest.approx(1934.5)
-    assert recipe.seconds_before(wd, "hires") == 0.0  # the status is another stage's
+    assert workdir_mod.stage_seconds_before(wd, "main") == pytest.approx(1934.5)
+    assert workdir_mod.stage_seconds_before(wd, "hires") == 0.0  # the status is another stage's
     # interrupted (SIGTERM): it ended 30 s after its last heartbeat
     status(status="interrupted", stage="main", started=1000.0, heartbeat=1700.0, ended=1730.0)
-    assert recipe.seconds_before(wd, "main") == pytest.approx(730.0)
+    assert workdir_mod.stage_seconds_before(wd, "main") == pytest.approx(730.0)
     status(status="running", stage="main", started="garbled")
-    assert recipe.seconds_before(wd, "main") == 0.0
+    assert workdir_mod.stage_seconds_before(wd, "main") == 0.0
