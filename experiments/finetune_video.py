@@ -40,6 +40,7 @@ Run (from the repository root; 45 min on a 2-core AVX2 CPU, 37 of them the fine-
     .venv/bin/python experiments/finetune_video.py                 # 150 frames, 200 fine-tune steps
     .venv/bin/python experiments/finetune_video.py --quick         # smoke run: 16 frames, 4 steps (~6 min)
     .venv/bin/python experiments/finetune_video.py --steps 100     # another step count
+    .venv/bin/python experiments/finetune_video.py --set stage_overrides.finetune.ema_decay=0.99 --name ema   # a variant
 
 Work files go under --work (default /tmp/bridge_finetune_video[_quick], replaced on each run). The full run writes
 experiments/results/finetune_video.md and experiments/results/raw/finetune_video_<date>.json (a --quick run writes
@@ -49,6 +50,7 @@ follows the generated part has to be redone from the new numbers.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import math
@@ -223,9 +225,9 @@ def score_checkpoint(ckpt: str, left, right, first, vx, vy, d, border) -> dict:
     res = {"card_settings": card}
     variants = (("card", {}), ("polish none", {"polish": "none"}),
                 ("raw", {"polish": "none", "refine": 0, "symmetry": "none"}))
+    card_stages = p.test_time
     for name, attrs in variants:
-        for k, v in attrs.items():
-            setattr(p, k, v)
+        p.test_time = dataclasses.replace(card_stages, **attrs)  # TestTime is frozen: one record per variant
         res[name] = score(p, left, right, first, vx, vy, d, border)
         r = res[name]
         print(f"  {name:12s} flow EPE {r['flow_epe']:.3f} px, Fl {r['fl']:.2f} %, disparity EPE {r['disp_epe']:.3f} "
@@ -255,7 +257,16 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="smoke run: 16 frames, 4 steps, nothing written to the repo")
     ap.add_argument("--frames", type=int, default=None, help="video length (default 150; 16 with --quick)")
     ap.add_argument("--work", default=None, help="work folder (replaced; default /tmp/bridge_finetune_video[_quick])")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for the fine-tune (passed as --config.KEY=VALUE; repeatable), to measure "
+                         "a variant of the stage; the report then goes to finetune_video_<--name>.md")
+    ap.add_argument("--name", default=None, help="report name suffix for a variant (required with --set)")
     args = ap.parse_args()
+    for item in args.set:
+        if "=" not in item or item.startswith("="):
+            ap.error(f"--set {item!r}: expected KEY=VALUE (a config key such as ema_decay=0.99)")
+    if args.set and not args.name:
+        ap.error("--set needs --name (the variant's report goes to experiments/results/finetune_video_<name>.md)")
     n = args.frames or (16 if args.quick else 150)
     steps = 4 if args.quick else args.steps
     work = args.work or ("/tmp/bridge_finetune_video_quick" if args.quick else "/tmp/bridge_finetune_video")
@@ -310,6 +321,7 @@ def main() -> None:
            f"--config.data.data_dir={train_dir}", f"--config.data.val_dir={heldout_dir}"]
     if steps != 200:
         cmd.append(f"--config.loop.num_train_steps={steps}")
+    cmd += [f"--config.{item}" for item in args.set]
     log_path = os.path.join(work, "train.log")
     rc, train_s = run(cmd, log_path)
     with open(log_path, errors="replace") as f:
@@ -344,8 +356,9 @@ def main() -> None:
     if args.quick:
         raw_path, md_path = os.path.join(work, "finetune_video.json"), os.path.join(work, "finetune_video.md")
     else:
-        raw_path = os.path.join(REPO, "experiments", "results", "raw", f"finetune_video_{stamp}.json")
-        md_path = os.path.join(REPO, "experiments", "results", "finetune_video.md")
+        base = "finetune_video" + (f"_{args.name}" if args.name else "")
+        raw_path = os.path.join(REPO, "experiments", "results", "raw", f"{base}_{stamp}.json")
+        md_path = os.path.join(REPO, "experiments", "results", f"{base}.md")
     os.makedirs(os.path.dirname(raw_path), exist_ok=True)
     with open(raw_path, "w") as f:
         json.dump(result, f, indent=1)

@@ -15,21 +15,26 @@ Stages (`STAGES`; each starts from the previous stage's final params with fresh 
    about a quarter, and this is where most of the learning happens.
 2. `main`: 1,500 steps at 128x256 (lr 2.5e-4, halved at 1,000) with the census photometric term (robust to the
    exposure and gain differences between real cameras), the self-supervision term (full-frame maps teach the
-   maps of crops) and frames t+1 cut up to 8 % of the height away from t (vertical motion at the frame level).
+   maps of crops), frames t+1 cut up to 8 % of the height away from t (vertical motion at the frame level), and
+   the stereo pairs' photometric terms masked by the forward-backward occlusion check as the flow pairs' are
+   (`loss.stereo_occlusion`; the paper leaves them unmasked, which rewards giving background the right view cannot
+   see the foreground's disparity).
 3. `hires`: 350 steps of the same at 256x512, so that one working pixel is 1-2 input pixels of a photograph (fine
    detail, object edges, sub-pixel shifts the smaller stages never saw), at lr 2.5e-4 halved at steps 180 and 315,
    with the params' moving average (`ema_decay` 0.99, about the last 100 steps) as the stage's model: at this lr
    the average beat the last step's params on nearly every real-image check.
 
-The same steps at half the last stage's lr and without the average (candidate J) took 1 h 56 min on a 2-core
-Intel Xeon VM (2026-12-06); the average adds no measurable step time. Which split and which last stage were
+The same steps at half the last stage's lr, without the average and without the stereo mask (candidate J) took
+1 h 56 min on a 2-core Intel Xeon VM (2026-12-06); the average adds no measurable step time, the mask none (the
+occlusion check runs for the flow pairs anyway). Which split and which last stage were
 tried, and what each bought: `experiments/results/long_recipe.md`.
 
 Arguments: `short` = every stage at toy scale (4 steps each at 64x128) for tests and smoke runs;
 `finetune` = one stage with the last stage's settings from the shipped `long` weights, on your own stereo video
 (`data.source=folder`; set `data.data_dir` and, to see whether it helps, `data.val_dir`), validating before its
-first step, at the lr the shipped weights' own last stage had (`FINETUNE_LR`) and without the average (as it was
-measured in `experiments/results/finetune_video.md`); `legacy` = the five hand-chained stages the `long` shipped
+first step, at the lr the shipped weights' own last stage had (`FINETUNE_LR`), without the average and with the
+stereo pairs unmasked, as the shipped weights were trained (as it was measured in
+`experiments/results/finetune_video.md`); `legacy` = the five hand-chained stages the `long` shipped
 until 2026-12-04 came from, as one recipe from random initialisation (about 5x the compute of the recipe above;
 kept to measure against).
 """
@@ -52,14 +57,14 @@ STAGES = (
     ("main", {
         "height": 128, "width": 256, "lr": 2.5e-4,
         "data.synthetic_scene": "real_motion", "data.augment_shift": 0.08,
-        "loss.photometric": "census", "loss.self_supervision": 0.3,
+        "loss.photometric": "census", "loss.self_supervision": 0.3, "loss.stereo_occlusion": True,
         "loop.num_train_steps": 1500, "loop.steps_per_epoch": 250,  # halved at 1000
         "loop.checkpoint_every": 250, "loop.eval_every": 500, "loop.image_every": 500, "eval.batch": 4,
     }),
     ("hires", {
         "height": 256, "width": 512, "lr": 2.5e-4, "ema_decay": 0.99,
         "data.synthetic_scene": "real_motion", "data.augment_shift": 0.08,
-        "loss.photometric": "census", "loss.self_supervision": 0.3,
+        "loss.photometric": "census", "loss.self_supervision": 0.3, "loss.stereo_occlusion": True,
         "loop.num_train_steps": 350, "loop.steps_per_epoch": 45,  # halved at 180 and 315
         "loop.checkpoint_every": 125, "loop.eval_every": 350, "loop.image_every": 350, "eval.batch": 4,
     }),
@@ -129,6 +134,7 @@ def finetune_stage() -> tuple[str, dict]:
     name, last = STAGES[-1]
     settings = dict(last, **{
         "init_from": "long", "data.source": "folder", "lr": FINETUNE_LR, "ema_decay": 0.0,
+        "loss.stereo_occlusion": False,
         "loop.num_train_steps": FINETUNE_STEPS,
         "loop.steps_per_epoch": FINETUNE_STEPS, "loop.checkpoint_every": 50, "loop.eval_every": 50,
         "loop.image_every": 50, "loop.eval_at_start": True})

@@ -32,33 +32,38 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 D_LAST = ["--config.stage_overrides.hires.lr=1.25e-4", "--config.stage_overrides.hires.ema_decay=0.0",
           "--config.stage_overrides.hires.loop.num_train_steps=250",
           "--config.stage_overrides.hires.loop.steps_per_epoch=250"]
+# Candidates measured before configs/long.py masked the stereo pairs by the occlusion check in its last two stages
+# (2026-12-06, candidate M of long_recipe.md section 3e) keep them unmasked.
+NO_STEREO_OCC = ["--config.stage_overrides.main.loss.stereo_occlusion=False",
+                 "--config.stage_overrides.hires.loss.stereo_occlusion=False"]
 
 CANDIDATES = {
-    # the recipe as configs/long.py declares it (candidate K of long_recipe.md section 3d since 2026-12-06)
+    # the recipe as configs/long.py declares it (candidate M of long_recipe.md section 3e since 2026-12-06)
     "A": [],
     # its `main` stage at two cycles per step
     "B": ["--config.stage_overrides.main.global_batch=2"],
     # a longer 64x128 stage (its lr halving every 750 steps from step 2000), a shorter 128x256 one
     "C": ["--config.stage_overrides.coarse.loop.num_train_steps=6000",
           "--config.stage_overrides.coarse.loop.steps_per_epoch=500",
-          "--config.stage_overrides.main.loop.num_train_steps=1000"] + D_LAST,
+          "--config.stage_overrides.main.loop.num_train_steps=1000"] + D_LAST + NO_STEREO_OCC,
     # C's 64x128 stage half as long again (halving every 750 steps from step 3000)
     "D": ["--config.stage_overrides.coarse.loop.num_train_steps=9000",
           "--config.stage_overrides.coarse.loop.steps_per_epoch=750",
-          "--config.stage_overrides.main.loop.num_train_steps=1000"] + D_LAST,
+          "--config.stage_overrides.main.loop.num_train_steps=1000"] + D_LAST + NO_STEREO_OCC,
     # C with the 256x512 stage's time spent at 128x256 instead (hires reduced to one step)
     "E": ["--config.stage_overrides.coarse.loop.num_train_steps=6000",
           "--config.stage_overrides.coarse.loop.steps_per_epoch=500",
           "--config.stage_overrides.main.loop.num_train_steps=2400",
           "--config.stage_overrides.main.loop.steps_per_epoch=400"] + D_LAST
-         + ["--config.stage_overrides.hires.loop.num_train_steps=1"],
+         + NO_STEREO_OCC + ["--config.stage_overrides.hires.loop.num_train_steps=1"],
     # D's stages with a third more 64x128 steps and twice the 128x256 ones (run end to end on a 2-core CPU:
     # 1 h 59 min, long_recipe.md section 3b)
     "G": ["--config.stage_overrides.coarse.loop.num_train_steps=12000",
           "--config.stage_overrides.coarse.loop.steps_per_epoch=1000",
-          "--config.stage_overrides.main.loop.num_train_steps=2000"] + D_LAST,
-    # the recipe with the stereo pairs masked by the occlusion check (edges.md: most of Motorcycle's error is
-    # occluded background given the foreground's disparity)
+          "--config.stage_overrides.main.loop.num_train_steps=2000"] + D_LAST + NO_STEREO_OCC,
+    # the recipe with the stereo pairs masked by the occlusion check from the first stage on (edges.md: most of
+    # Motorcycle's error is occluded background given the foreground's disparity; the recipe masks them from its
+    # second stage on)
     "H": ["--config.loss.stereo_occlusion=True"],
     # G with the stereo pairs masked
     "I": ["--config.stage_overrides.coarse.loop.num_train_steps=12000",
@@ -66,10 +71,12 @@ CANDIDATES = {
           "--config.stage_overrides.main.loop.num_train_steps=2000",
           "--config.loss.stereo_occlusion=True"] + D_LAST,
     # J (long_recipe.md section 3c): the recipe's stages with the last at half its lr and without the average
-    "J": ["--config.stage_overrides.hires.lr=1.25e-4", "--config.stage_overrides.hires.ema_decay=0.0"],
-    # the recipe with its last stage at twice its lr (long_recipe.md section 3d: better on Motorcycle, worse on
-    # the zooms)
-    "L": ["--config.stage_overrides.hires.lr=5e-4"],
+    "J": ["--config.stage_overrides.hires.lr=1.25e-4", "--config.stage_overrides.hires.ema_decay=0.0"]
+         + NO_STEREO_OCC,
+    # K (section 3d): the recipe without the stereo occlusion mask
+    "K": NO_STEREO_OCC,
+    # K with its last stage at twice its lr (section 3d: better on Motorcycle, worse on the zooms)
+    "L": ["--config.stage_overrides.hires.lr=5e-4"] + NO_STEREO_OCC,
 }
 
 
