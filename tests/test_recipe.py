@@ -107,8 +107,8 @@ def test_long_recipe_declares_its_stages_in_order():
     assert (ft_cfg.init_from, ft_cfg.data.source, ft_cfg.loop.eval_at_start) == ("long", "folder", True)
     for key in ("height", "width", "global_batch"):
         assert ft_cfg[key] == last[key], key
-    # at the lr fine-tuning was measured at, without the last stage's moving average
-    assert (ft_cfg.lr, ft_cfg.ema_decay, last.ema_decay) == (long.FINETUNE_LR, 0.0, 0.99)
+    # at the lr fine-tuning was measured at, with the last stage's moving average
+    assert (ft_cfg.lr, ft_cfg.ema_decay, last.ema_decay) == (long.FINETUNE_LR, 0.99, 0.99)
     # ... and the loss of the last stage, but the stereo pairs unmasked, as the shipped weights were trained
     assert ft_cfg.loss.to_dict() == dict(last.loss.to_dict(), stereo_occlusion=False)
     assert ft_cfg.data.synthetic_scene == last.data.synthetic_scene
