@@ -25,7 +25,7 @@ Stages (`STAGES`; each starts from the previous stage's final params with fresh 
    the average beat the last step's params on nearly every real-image check.
 
 The same steps at half the last stage's lr, without the average and without the stereo mask (candidate J) took
-1 h 56 min on a 2-core Intel Xeon VM (2026-12-06); the average adds no measurable step time, the mask none (the
+1 h 56 min on a 2-core Intel Xeon VM (2026-12-06); neither the average nor the mask adds measurable step time (the
 occlusion check runs for the flow pairs anyway). Which split and which last stage were
 tried, and what each bought: `experiments/results/long_recipe.md`.
 
