@@ -40,7 +40,7 @@ Run (from the repository root; 45 min on a 2-core AVX2 CPU, 37 of them the fine-
     .venv/bin/python experiments/finetune_video.py                 # 150 frames, 200 fine-tune steps
     .venv/bin/python experiments/finetune_video.py --quick         # smoke run: 16 frames, 4 steps (~6 min)
     .venv/bin/python experiments/finetune_video.py --steps 100     # another step count
-    .venv/bin/python experiments/finetune_video.py --set stage_overrides.finetune.ema_decay=0.99 --name ema   # a variant
+    .venv/bin/python experiments/finetune_video.py --set stage_overrides.finetune.lr=1.25e-4 --name lr2x   # a variant
 
 Work files go under --work (default /tmp/bridge_finetune_video[_quick], replaced on each run). The full run writes
 experiments/results/finetune_video.md and experiments/results/raw/finetune_video_<date>.json (a --quick run writes
