@@ -33,7 +33,9 @@ eq. 7's SSIM + L1), `scales="finest"` (only scale 0, the working size, instead o
 `smoothness_order=1` (first differences, weight `lambda_sm1`, edge constant `beta1`) and `occlusion_start_step`
 (flow pairs unmasked before that training step; the step comes from the train state) and `self_supervision`
 (`self_supervision_loss`: the full-frame maps, gradient stopped, supervise the maps of cropped frames where the
-teacher is confident; the train steps run the network on the crops and pass those maps as `Student`). Gradient
+teacher is confident; the train steps run the network on the crops and pass those maps as `Student`), and
+`occlusion_fill` (`occlusion_fill_loss`: the stereo maps' untrusted pixels pulled towards the farther of their
+row's nearest trusted neighbours, the background, with stopped gradient). Gradient
 clipping is an optimiser setting (`train_step.OptimizerConfig.clip_grad_norm`).
 
 Normalisation. A masked term sum(x * O) / sum(O) is kept per cycle as `Masked(mean(x * O), mean(O))`;
@@ -106,6 +108,13 @@ class LossConfig:
     # photometric term then rewards the nearer object's disparity, which lands on similar background beside the
     # object in the other view, and the network learns to bleed foreground disparity into occlusions.
     stereo_occlusion: bool = False  # mask stereo pairs by the occlusion check too (False = the paper)
+    # Background fill of the stereo maps' untrusted pixels (beyond the paper; `occlusion_fill_loss`): where a
+    # stereo map fails the forward-backward check or its match lies outside the other image, the images say
+    # nothing about the disparity, and the nearer surface's disparity spills over the background it hides. This
+    # term pulls each such pixel's horizontal component towards that of the nearest trusted pixel of its row on
+    # the side whose disparity is smaller (the farther surface: what a nearer object hides is behind it), the
+    # rule with which SGBM and the KITTI devkit fill their holes at test time. 0 = off (the paper).
+    occlusion_fill: float = 0.0  # weight of the background-fill term (0 = off)
     # Self-supervision (SelFlow, SMURF, Flow2Stereo; `self_supervision_loss`): the weight of a term in which the
     # network's own scale-0 pixel maps on the full frames (the teacher: gradient stopped, only where its
     # forward-backward check passes and its match lies inside the image) supervise its maps on the cycle's four
@@ -138,6 +147,12 @@ class LossConfig:
         if not (isinstance(self.self_supervision, (int, float)) and not isinstance(self.self_supervision, bool)
                 and np.isfinite(self.self_supervision) and self.self_supervision >= 0):
             raise ValueError(f"loss.self_supervision must be a number >= 0 (0 = off), got {self.self_supervision!r}")
+        if not (isinstance(self.occlusion_fill, (int, float)) and not isinstance(self.occlusion_fill, bool)
+                and np.isfinite(self.occlusion_fill) and self.occlusion_fill >= 0):
+            raise ValueError(f"loss.occlusion_fill must be a number >= 0 (0 = off), got {self.occlusion_fill!r}")
+        if self.occlusion_fill > 0 and self.tasks == "flow_only":
+            raise ValueError("loss.occlusion_fill fills the stereo maps' occlusions: it needs stereo pairs "
+                             f"(tasks 'flow_stereo' or 'stereo_only'), got tasks={self.tasks!r}")
         if not isinstance(self.self_supervision_start_step, int) or self.self_supervision_start_step < 0:
             raise ValueError(f"loss.self_supervision_start_step must be an integer >= 0, got "
                              f"{self.self_supervision_start_step!r}")
@@ -657,6 +672,68 @@ def add_self_supervision(total, terms: dict, term, cfg: LossConfig, step=None):
     return total, dict(terms, self_supervision=term, total=total)
 
 
+# ------------------------------------------------------------- background fill of stereo occlusions (beyond the paper)
+def occlusion_fill_targets(px, num_pairs: int, cfg: LossConfig):
+    """Where each row's map is untrusted and what the background fill says it should be, no gradient.
+
+    Trusted = `self_supervision_mask` (the forward-backward check passes and the match lies inside the other
+    image). For an untrusted pixel, the nearest trusted pixels of the same image row to its left and to its
+    right; the target is the horizontal component of the one with the smaller magnitude (the farther surface),
+    or of the only one there is. A row with no trusted pixel gives no target.
+
+    Args:
+      px: (2P, H, W, 2) scale-0 pixel maps of one cycle (forward rows, then backward).
+    Returns:
+      (target (2P, H, W) px, mask (2P, H, W) float {0, 1}: untrusted pixels with a target).
+    """
+    px = jax.lax.stop_gradient(px)
+    trusted = self_supervision_mask(px, num_pairs, cfg)[..., 0] > 0
+    w = px.shape[-2]
+    cols = jnp.arange(w, dtype=jnp.int32)
+    axis = trusted.ndim - 1
+    left = jax.lax.cummax(jnp.where(trusted, cols, -1), axis=axis)  # nearest trusted column at or left of x
+    right = jax.lax.cummin(jnp.where(trusted, cols, w), axis=axis, reverse=True)  # ... at or right of x
+    u = px[..., 0]
+    u_left = jnp.take_along_axis(u, jnp.clip(left, 0, w - 1), axis=axis)
+    u_right = jnp.take_along_axis(u, jnp.clip(right, 0, w - 1), axis=axis)
+    has_left, has_right = left >= 0, right < w
+    take_left = has_left & (~has_right | (jnp.abs(u_left) <= jnp.abs(u_right)))
+    target = jnp.where(take_left, u_left, u_right)
+    mask = (~trusted & (has_left | has_right)).astype(px.dtype)
+    return jax.lax.stop_gradient(target), jax.lax.stop_gradient(mask)
+
+
+def occlusion_fill_penalty(d):
+    """The fill term's robust penalty of a difference d (px): (d^2 + 0.01^2)^0.2 - 0.01^0.4, i.e. about
+    |d|^0.4 as `robust_penalty`, but smooth at d = 0 (its gradient there is 0, not +-0.4 * 0.01^-0.6: a pixel
+    already at its fill value is not pushed either way)."""
+    return jnp.power(jnp.square(d) + 0.01 ** 2, 0.2) - 0.01 ** 0.4
+
+
+def occlusion_fill_loss(px, cfg: LossConfig) -> Masked:
+    """Background-fill term of one cycle (`LossConfig.occlusion_fill`; beyond the paper):
+
+        L_fill = sum(rho(u - t) * M) / N
+
+    over the stereo pairs' rows (both directions) of the scale-0 maps: u = a map's horizontal component, t and
+    M = `occlusion_fill_targets` (the fill value and where it applies), rho = `occlusion_fill_penalty`,
+    N = the rows' pixel count (a plain mean, like the smoothness term: the term grows with the
+    share of untrusted pixels).
+
+    Args:
+      px: (2P, H, W, 2) scale-0 pixel maps of one cycle (the active pairs' forward rows, then backward).
+    Returns:
+      Masked(L_fill, 1), reduced over cycles like every other term.
+    """
+    p = px.shape[0] // 2
+    target, mask = occlusion_fill_targets(px, p, cfg)
+    stereo = [i for i, k in enumerate(cfg.pairs) if cyc.PAIRS[k].task == "stereo"]
+    rows = np.array(stereo + [p + i for i in stereo])
+    pen = occlusion_fill_penalty(px[rows, ..., 0] - target[rows])
+    m = mask[rows]
+    return Masked(jnp.sum(pen * m) / m.size, jnp.ones((), px.dtype))
+
+
 # ----------------------------------------------------------------------------------- eq. 13: cycle loss
 class ScaleTerms(NamedTuple):
     """Every unweighted term of one cycle at one scale (`Masked` per cycle; scalars once reduced)."""
@@ -841,7 +918,8 @@ def total_loss(scales: tuple[ScaleTerms, ...], cfg: LossConfig):
 
 def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None, student: Optional[Student] = None):
     """The training loss of a batch of cycles (paper eq. 13): `cycle_terms` vmapped over the cycles, reduced
-    over them (`cfg.reduction`), weighted by `total_loss`; with `cfg.self_supervision > 0` plus that weight times
+    over them (`cfg.reduction`), weighted by `total_loss`; with `cfg.occlusion_fill > 0` plus that weight times
+    the `occlusion_fill_loss` of the scale-0 maps; with `cfg.self_supervision > 0` plus that weight times
     the `self_supervision_loss` of the full-frame scale-0 maps (teacher) and `student` (`add_self_supervision`).
 
     Args:
@@ -853,7 +931,8 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None, student:
         `cfg.self_supervision_start_step > 0`).
       student: the self-supervision student (`Student`), needed exactly when `cfg.self_supervision > 0`.
     Returns:
-      (total scalar, dict of every term by name; see `total_loss`, and "self_supervision" when it is on).
+      (total scalar, dict of every term by name; see `total_loss`, and "occlusion_fill" (unweighted,
+      `occlusion_fill_loss`) and "self_supervision" when they are on).
     """
     if cycles.ndim == 4:
         cycles = cycles[None]
@@ -873,12 +952,17 @@ def cycle_loss(maps, cycles, cfg: LossConfig, pyramids=None, step=None, student:
     per_cycle = cyc.unbatch_maps(maps, b)
     terms = jax.vmap(lambda m, c, p: cycle_terms(m, c, cfg, p, step))(per_cycle, cycles, pyramids)
     total, named = total_loss(reduce_over_cycles(terms, cfg.reduction), cfg)
+    rows = cyc.rows_per_cycle(cfg.pairs)
+    finest = per_cycle["px"][0]  # (B, 2P or 8, H, W, 2); as `_select_rows`, all 8 rows are accepted
+    if finest.shape[1] != rows:
+        finest = finest[:, np.array(list(cfg.pairs) + [4 + k for k in cfg.pairs])]
+    if cfg.occlusion_fill > 0:
+        fill = reduce_over_cycles(jax.vmap(lambda m: occlusion_fill_loss(m, cfg))(finest), cfg.reduction)
+        total = total + cfg.occlusion_fill * fill
+        named = dict(named, occlusion_fill=fill, total=total)
     if student is None:
         return total, named
-    rows = cyc.rows_per_cycle(cfg.pairs)
-    teacher = per_cycle["px"][0]  # (B, 2P or 8, H, W, 2); as `_select_rows`, all 8 rows are accepted
-    if teacher.shape[1] != rows:
-        teacher = teacher[:, np.array(list(cfg.pairs) + [4 + k for k in cfg.pairs])]
+    teacher = finest
     students = student.px.reshape((b, rows) + student.px.shape[1:])
     term = jax.vmap(lambda t, s, o: self_supervision_loss(t, s, o, cfg))(teacher, students, student.offsets)
     return add_self_supervision(total, named, reduce_over_cycles(term, cfg.reduction), cfg, step)

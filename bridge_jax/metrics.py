@@ -466,3 +466,36 @@ def disparity_edge_metrics(pred: np.ndarray, gt: np.ndarray, valid: Optional[np.
     bad = outliers(err, np.abs(gt))
     return {"epe_edge": float(err[band].mean()), "d1_edge": 100.0 * float(bad[band].mean()),
             "fat_edge": 100.0 * float((bad & (pred > gt))[band].mean())}
+
+
+def out_of_view_mask(gt: np.ndarray, valid: Optional[np.ndarray] = None) -> np.ndarray:
+    """The pixels of a left image that the right image cannot see because their match lies beyond its left
+    border: ground truth at column x with x - d < 0 (the strip along the left edge, as wide as the disparity
+    there). A stereo method has nothing to match there and can only extrapolate from the pixels beside it.
+
+    Args:
+      gt: ``(H, W)`` ground-truth disparity of the left image, pixels; 0 = no ground truth.
+      valid: ``(H, W)`` bool; default ``gt > 0``.
+    """
+    gt = np.asarray(gt, np.float64)
+    valid = gt > 0 if valid is None else _check_mask(valid, gt.shape, "valid")
+    return valid & (np.arange(gt.shape[1])[None, :] - gt < 0)
+
+
+def disparity_out_of_view_metrics(pred: np.ndarray, gt: np.ndarray,
+                                  valid: Optional[np.ndarray] = None) -> dict[str, float]:
+    """The disparity error where the right image cannot see the left one's pixels (`out_of_view_mask`):
+    {"epe_outview" px, "d1_outview" % (KITTI outliers)}; NaN when there is no such pixel.
+
+    Args:
+      pred: ``(H, W)`` predicted disparity, pixels of the ground-truth resolution.
+      gt: ``(H, W)`` ground-truth disparity; 0 = no ground truth.
+      valid: ``(H, W)`` bool; default ``gt > 0``.
+    """
+    gt = np.asarray(gt, np.float64)
+    strip = out_of_view_mask(gt, valid)
+    if not strip.any():
+        return {"epe_outview": float("nan"), "d1_outview": float("nan")}
+    err = endpoint_error(np.asarray(pred, np.float64), gt)
+    return {"epe_outview": float(err[strip].mean()),
+            "d1_outview": 100.0 * float(outliers(err, np.abs(gt))[strip].mean())}

@@ -141,6 +141,7 @@ FLOAT_RULES: dict[str, tuple[float, float, str, str]] = {
     "loss.lambda_lr": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
     "loss.lambda_2warp": (0.0, math.inf, "[)", "a weight of the total loss; 0 = term off"),
     "loss.self_supervision": (0.0, math.inf, "[)", "a weight of the total loss; 0 = off"),
+    "loss.occlusion_fill": (0.0, math.inf, "[)", "a weight of the total loss; 0 = off"),
     # |D + W(D')|^2 <= 2 (|D|^2 + |W(D')|^2): from alpha1 = 2 on the paper's test never marks a pixel occluded
     "loss.occ_alpha1": (0.0, 2.0, "[)", "the relative part of the occlusion threshold, eq. 6; from 2 on no pixel "
                                         "is ever occluded"),

@@ -159,7 +159,8 @@ def strongest_baseline(results: dict, check: str) -> Optional[str]:
 
 
 COLUMNS = {"motorcycle": [("epe_all", "disp EPE px"), ("d1_all", "D1 %"), ("epe_edge", "EPE near edges px"),
-                          ("d1_edge", "D1 near edges %"), ("fat_edge", "fattened near edges %")],
+                          ("d1_edge", "D1 near edges %"), ("fat_edge", "fattened near edges %"),
+                          ("epe_outview", "EPE out of view px"), ("d1_outview", "D1 out of view %")],
            "homography": [("epe_all", "flow EPE-all px"), ("epe_noc", "EPE-noc px"), ("fl_all", "Fl-all %")],
            "heldout_synthetic": [("flow_epe_all", "flow EPE-all"), ("flow_epe_noc", "EPE-noc"), ("fl_all", "Fl %"),
                                  ("disp_epe_all", "disp EPE"), ("d1_all", "D1 %"), ("disp_epe_edge", "EPE near edges"),

@@ -169,6 +169,7 @@ FLOAT_CASES = {
     "loss.lambda_lr": (["-0.5", "-inf"], ["0.0", "0.5"]),
     "loss.lambda_2warp": (["-0.2", "nan"], ["0.0", "0.2"]),
     "loss.self_supervision": (["-0.3", "nan"], ["0.0", "0.3"]),
+    "loss.occlusion_fill": (["-1.0", "inf"], ["0.0", "0.5"]),
     "loss.occ_alpha1": (["-0.01", "2.0", "nan"], ["0.0", "1.99"]),
     "loss.occ_alpha2": (["-0.5", "inf"], ["0.0", "0.5"]),
     "loss.border_ratio": (["-0.1", "0.5", "nan"], ["0.0", "0.49"]),

@@ -238,3 +238,73 @@ def test_micro_batched_step_reads_the_step_like_the_plain_step():
         assert float(lm) == pytest.approx(float(lp), rel=1e-5)
         got[s] = float(lm)
     assert got[None] == pytest.approx(got[7], rel=1e-6) and got[0] != pytest.approx(got[7], rel=1e-4)
+
+
+def _block_scene_maps(bleed: bool):
+    """Stereo maps of a 40-px-wide scene by hand (rows: forward left->right, u = -d; backward right->left,
+    u = +d), 8 rows high: background at 4 px, a nearer block at 12 px on left columns 20-27, which the right view
+    shows on columns 8-15. Left columns 0-3 match beyond the right image (x - 4 < 0); left columns 12-19 are
+    background the block hides in the right view; right columns 16-23 are background the block hides in the
+    left view, and right columns 36-39 match beyond the left image. `bleed`: the left map gives the hidden
+    left columns 12-19 the block's disparity (what the photometric term rewards), else the background's."""
+    u_f = np.full((8, 40), -4.0)
+    u_f[:, 20:28] = -12.0
+    if bleed:
+        u_f[:, 12:20] = -12.0
+    u_b = np.full((8, 40), 4.0)
+    u_b[:, 8:16] = 12.0
+    px = np.zeros((4, 8, 40, 2), np.float32)  # tasks="stereo_only": forward t1, t; backward t1, t
+    px[:2, ..., 0], px[2:, ..., 0] = u_f, u_b
+    return jnp.asarray(px)
+
+
+def test_occlusion_fill_targets_the_background_by_hand():
+    """Untrusted pixels (the forward-backward check fails, or the match is outside the other image) take the
+    horizontal component of the farther of their row's nearest trusted pixels (`_block_scene_maps`)."""
+    cfg = losses.LossConfig(tasks="stereo_only", occlusion_fill=1.0)
+    target, mask = losses.occlusion_fill_targets(_block_scene_maps(bleed=True), 2, cfg)
+    target, mask = np.asarray(target), np.asarray(mask)
+    fwd_untrusted = [0, 1, 2, 3] + list(range(12, 20))  # beyond the right image; bled over by the block
+    bwd_untrusted = list(range(16, 24)) + [36, 37, 38, 39]  # hidden in the left view; beyond the left image
+    for row, cols, fill in ((0, fwd_untrusted, -4.0), (1, fwd_untrusted, -4.0), (2, bwd_untrusted, 4.0),
+                            (3, bwd_untrusted, 4.0)):
+        assert np.flatnonzero(mask[row, 3]).tolist() == cols, row
+        assert (mask[row] == mask[row, :1]).all()  # every image row alike
+        np.testing.assert_array_equal(target[row][:, cols], fill)
+
+
+def test_occlusion_fill_loss_by_hand_and_in_the_cycle_loss():
+    """The bled pixels (left columns 12-19: -12 against the background's -4) cost rho(8) each, everything else
+    nothing: L = 2 rows * 8 * 8 px * rho(8) / (4 rows * 8 * 40 px) = rho(8) / 10, rho(x) = (x^2 + 0.01^2)^0.2 -
+    0.01^0.4. Without the bleed the term is 0. In `cycle_loss` it is added to the total at its weight, and its
+    gradient moves only the bled pixels' horizontal component, towards the background."""
+    cfg = losses.LossConfig(tasks="stereo_only", occlusion_fill=1.0)
+    rho8 = (64.0 + 0.01 ** 2) ** 0.2 - 0.01 ** 0.4
+    bled = losses.occlusion_fill_loss(_block_scene_maps(bleed=True), cfg)
+    assert float(bled.num / bled.den) == pytest.approx(rho8 / 10, rel=1e-5)
+    clean = losses.occlusion_fill_loss(_block_scene_maps(bleed=False), cfg)
+    assert float(clean.num) == 0.0
+    grad = np.asarray(jax.grad(lambda p: losses.occlusion_fill_loss(p, cfg).num)(_block_scene_maps(bleed=True)))
+    moved = np.argwhere(grad != 0)
+    assert set(moved[:, 0]) == {0, 1} and set(moved[:, 2]) == set(range(12, 20)) and set(moved[:, 3]) == {0}
+    assert (grad[:2, :, 12:20, 0] < 0).all()  # descending raises u from -12 towards -4
+
+    cycle, _ = translating_cycle(8, 40)
+    px = _block_scene_maps(bleed=True)
+    maps = {"px": tuple(px[:, ::2 ** s, ::2 ** s] / 2 ** s for s in range(4)),
+            "frac": tuple(px[:, ::2 ** s, ::2 ** s] * 0 for s in range(4))}
+    off_cfg = losses.LossConfig(tasks="stereo_only", num_scales=1)
+    on_cfg = losses.LossConfig(tasks="stereo_only", num_scales=1, occlusion_fill=2.0)
+    total_off, _ = losses.cycle_loss(maps, jnp.asarray(cycle), off_cfg)
+    total_on, terms = losses.cycle_loss(maps, jnp.asarray(cycle), on_cfg)
+    assert float(terms["occlusion_fill"]) == pytest.approx(rho8 / 10, rel=1e-5)
+    assert float(total_on) == pytest.approx(float(total_off) + 2.0 * rho8 / 10, rel=1e-5)
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(occlusion_fill=-1.0), r"loss.occlusion_fill must be a number >= 0"),
+    (dict(occlusion_fill=0.5, tasks="flow_only"), r"loss.occlusion_fill fills the stereo maps"),
+])
+def test_occlusion_fill_config_errors(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        losses.LossConfig(**overrides)

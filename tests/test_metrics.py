@@ -153,6 +153,34 @@ def test_shape_mismatch_is_an_error():
         metrics.flow_metrics(np.zeros((2, 3, 2)), np.zeros((3, 2, 2)), np.ones((3, 2), bool))
 
 
+def test_out_of_view_strip_by_hand():
+    """Disparity 10 px on columns 0-19 and 30 px on 20-39 of an 8x40 left image: columns 0-9 match x - 10 < 0 and
+    columns 20-29 match x - 30 < 0, beyond the right image's left border; column 10 matches column 0 exactly
+    (inside). A prediction of 0 there errs by the true disparity on every strip pixel, all outliers; one that
+    is right on columns 0-9 and 5 px short on 20-29 has half its strip pixels off by 5 (outliers: 5 > 3 px and
+    > 5 % of 30)."""
+    gt = np.zeros((8, 40))
+    gt[:, :20], gt[:, 20:] = 10.0, 30.0
+    strip = metrics.out_of_view_mask(gt)
+    assert strip.sum() == 8 * 20 and strip[:, :10].all() and strip[:, 20:30].all()
+    assert not strip[:, 10:20].any() and not strip[:, 30:].any()
+    m = metrics.disparity_out_of_view_metrics(np.zeros_like(gt), gt)
+    assert m["epe_outview"] == pytest.approx((10 * 10 + 10 * 30) / 20) and m["d1_outview"] == pytest.approx(100.0)
+    pred = gt.copy()
+    pred[:, 20:30] = 25.0
+    m = metrics.disparity_out_of_view_metrics(pred, gt)
+    assert m["epe_outview"] == pytest.approx(2.5) and m["d1_outview"] == pytest.approx(50.0)
+    # pixels without ground truth are never in the strip; an image whose matches all lie inside has none
+    holed = gt.copy()
+    holed[:, :5] = 0.0
+    assert metrics.out_of_view_mask(holed).sum() == 8 * 15
+    # a match half a pixel beyond the border is out of view too: only column 0 of a 0.5 px disparity
+    assert metrics.out_of_view_mask(np.full((4, 40), 0.5)).sum(axis=0).tolist() == [4] + [0] * 39
+    inside = np.zeros((4, 40))
+    inside[:, 10:] = 5.0
+    assert math.isnan(metrics.disparity_out_of_view_metrics(inside, inside)["d1_outview"])
+
+
 def test_depth_edge_band_and_fattening_by_hand():
     """A fronto-parallel step from 10 px (background, columns 0-19) to 30 px (foreground, 20-39): the edge pixels
     are columns 19 and 20, the band of radius 2 columns 17-22 on every row. A prediction whose foreground bled

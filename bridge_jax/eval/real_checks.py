@@ -400,10 +400,13 @@ def pair_flows(method, pairs: Sequence[dict]) -> list[np.ndarray]:
 def score_motorcycle(method, moto: dict) -> tuple[dict, np.ndarray]:
     """{"epe_all", "d1_all"} of `method`'s disparity of `motorcycle()` over its ground-truth pixels, the same
     within a few pixels of the depth edges ("epe_edge", "d1_edge", and "fat_edge", the share of those pixels
-    given a nearer surface's disparity: `metrics.disparity_edge_metrics`), and that disparity (500, 741) px."""
+    given a nearer surface's disparity: `metrics.disparity_edge_metrics`) and on the strip along the left edge
+    that the right image does not see ("epe_outview", "d1_outview": `metrics.disparity_out_of_view_metrics`),
+    and that disparity (500, 741) px."""
     d = method.predict([("stereo", moto["left"], moto["right"])])[0]
     return {**_pick(metrics.disparity_metrics(d, moto["disp"], moto["valid"]), ("epe_all", "d1_all")),
-            **metrics.disparity_edge_metrics(d, moto["disp"], moto["valid"])}, d
+            **metrics.disparity_edge_metrics(d, moto["disp"], moto["valid"]),
+            **metrics.disparity_out_of_view_metrics(d, moto["disp"], moto["valid"])}, d
 
 
 def score_homography(method, pairs: Sequence[dict]) -> tuple[dict, np.ndarray]:
