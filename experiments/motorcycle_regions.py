@@ -13,7 +13,10 @@ each model's error over disjoint regions of the left image, from the ground trut
 
 For each region: its share of the ground-truth pixels, EPE, D1 (KITTI outliers), the mean signed error (bias,
 px: > 0 = too near) and its **contribution** to the whole image's EPE (the region's error summed over the image's
-pixel count: the contributions of the four disjoint regions add up to the EPE of the check).
+pixel count: the contributions of the four disjoint regions add up to the EPE of the check). With
+`--left-right`, also the share of each region's pixels that fail the left-right check (`left_right_flags`: the
+model's right-view disparity from the mirrored pair, then the occlusion test of the paper's eq. 6), and of its
+outliers: what a check-based fill can find.
 
     python experiments/motorcycle_regions.py --models long,W1,W2 --polish none,photometric \\
         --out experiments/results/raw/motorcycle_regions_DATE.json
@@ -74,12 +77,38 @@ def region_numbers(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> dict[
     return out
 
 
+def left_right_flags(d_left: np.ndarray, d_right: np.ndarray, alpha1: float = 0.01,
+                     alpha2: float = 0.5) -> np.ndarray:
+    """Left-image pixels that fail the left-right check (paper eq. 6 on disparities): pixel x with disparity d
+    reads the right view's disparity d' at x - d (linear interpolation) and fails when
+    (d - d')^2 > alpha1 (d^2 + d'^2) + alpha2, or when x - d lies left of the right image (out of view).
+
+    Args:
+      d_left: (H, W) the left view's disparity px (left x matches right x - d).
+      d_right: (H, W) the right view's disparity px (right x matches left x + d').
+    Returns:
+      (H, W) bool, True = fails.
+    """
+    h, w = d_left.shape
+    x = np.arange(w)[None, :] - d_left
+    x0 = np.clip(np.floor(x).astype(int), 0, w - 1)
+    x1 = np.clip(x0 + 1, 0, w - 1)
+    a = np.clip(x - np.floor(x), 0.0, 1.0)
+    rows = np.arange(h)[:, None]
+    d_read = (1 - a) * d_right[rows, x0] + a * d_right[rows, x1]
+    fails = (d_left - d_read) ** 2 > alpha1 * (d_left ** 2 + d_read ** 2) + alpha2
+    return fails | (x < 0)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", required=True, help="comma list of shipped model names or checkpoint paths")
     p.add_argument("--polish", default="none", help="comma list: none, photometric")
     p.add_argument("--refine", type=int, default=1, help="test-time refinement passes (default 1)")
     p.add_argument("--symmetry", default="flips", help="test-time symmetry averaging (default flips)")
+    p.add_argument("--left-right", action="store_true",
+                   help="also report the share of each region failing the left-right check (one more prediction "
+                        "per model: the mirrored pair)")
     p.add_argument("--out", default=None, help="JSON file for every number")
     args = p.parse_args(argv)
     from bridge_jax import inference, testtime
@@ -95,10 +124,22 @@ def main(argv=None) -> int:
             d = np.asarray(pred.predict_pair(moto["left"], moto["right"], "stereo"), np.float64)
             label = f"{os.path.basename(model.rstrip('/'))}, polish {polish}"
             results[label] = region_numbers(d, gt, valid)
-            print(f"\n{label}\n| region | share % | EPE px | D1 % | bias px | contribution px |\n|---|---|---|---|---|---|")
+            if args.left_right:
+                # the mirrored pair (flipped right view as the left one) is a left -> right pair whose
+                # disparity, flipped back, is the right view's
+                mirrored = pred.predict_pair(moto["right"][:, ::-1].copy(), moto["left"][:, ::-1].copy(), "stereo")
+                fails = left_right_flags(d, np.asarray(mirrored, np.float64)[:, ::-1])
+                bad = metrics.outliers(metrics.endpoint_error(d, gt), np.abs(gt))
+                for name, mask in {"all": valid, **regions(gt, valid)}.items():
+                    results[label][name]["fails_left_right"] = 100.0 * float(fails[mask].mean())
+                    results[label][name]["outliers_failing"] = 100.0 * float(fails[mask & bad].mean())
+            lr_head = " fail LR check % | outliers failing % |" if args.left_right else ""
+            print(f"\n{label}\n| region | share % | EPE px | D1 % | bias px | contribution px |{lr_head}\n"
+                  + "|---" * (6 + 2 * args.left_right) + "|")
             for name, r in results[label].items():
+                lr = (f" {r['fails_left_right']:.1f} | {r['outliers_failing']:.1f} |" if args.left_right else "")
                 print(f"| {name} | {r['share']:.1f} | {r['epe']:.3f} | {r['d1']:.1f} | {r['bias']:+.3f} "
-                      f"| {r['contribution']:.3f} |", flush=True)
+                      f"| {r['contribution']:.3f} |{lr}", flush=True)
     if args.out:
         stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         with open(args.out, "w") as f:
