@@ -144,12 +144,11 @@ class LossConfig:
                 raise ValueError(f"loss.{field} must be one of {allowed}, got {getattr(self, field)!r}")
         if not isinstance(self.occlusion_start_step, int) or self.occlusion_start_step < 0:
             raise ValueError(f"loss.occlusion_start_step must be an integer >= 0, got {self.occlusion_start_step!r}")
-        if not (isinstance(self.self_supervision, (int, float)) and not isinstance(self.self_supervision, bool)
-                and np.isfinite(self.self_supervision) and self.self_supervision >= 0):
-            raise ValueError(f"loss.self_supervision must be a number >= 0 (0 = off), got {self.self_supervision!r}")
-        if not (isinstance(self.occlusion_fill, (int, float)) and not isinstance(self.occlusion_fill, bool)
-                and np.isfinite(self.occlusion_fill) and self.occlusion_fill >= 0):
-            raise ValueError(f"loss.occlusion_fill must be a number >= 0 (0 = off), got {self.occlusion_fill!r}")
+        for field in ("self_supervision", "occlusion_fill"):  # weights of terms beyond the paper
+            value = getattr(self, field)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+                    and value >= 0):
+                raise ValueError(f"loss.{field} must be a number >= 0 (0 = off), got {value!r}")
         if self.occlusion_fill > 0 and self.tasks == "flow_only":
             raise ValueError("loss.occlusion_fill fills the stereo maps' occlusions: it needs stereo pairs "
                              f"(tasks 'flow_stereo' or 'stereo_only'), got tasks={self.tasks!r}")
@@ -682,7 +681,7 @@ def occlusion_fill_targets(px, num_pairs: int, cfg: LossConfig):
     or of the only one there is. A row with no trusted pixel gives no target.
 
     Args:
-      px: (2P, H, W, 2) scale-0 pixel maps of one cycle (forward rows, then backward).
+      px: (2P, H, W, 2) scale-0 pixel maps of P pairs (forward rows, then backward).
     Returns:
       (target (2P, H, W) px, mask (2P, H, W) float {0, 1}: untrusted pixels with a target).
     """
@@ -700,7 +699,7 @@ def occlusion_fill_targets(px, num_pairs: int, cfg: LossConfig):
     take_left = has_left & (~has_right | (jnp.abs(u_left) <= jnp.abs(u_right)))
     target = jnp.where(take_left, u_left, u_right)
     mask = (~trusted & (has_left | has_right)).astype(px.dtype)
-    return jax.lax.stop_gradient(target), jax.lax.stop_gradient(mask)
+    return target, mask  # from the stopped maps: no gradient
 
 
 def occlusion_fill_penalty(d):
@@ -726,12 +725,12 @@ def occlusion_fill_loss(px, cfg: LossConfig) -> Masked:
       Masked(L_fill, 1), reduced over cycles like every other term.
     """
     p = px.shape[0] // 2
-    target, mask = occlusion_fill_targets(px, p, cfg)
     stereo = [i for i, k in enumerate(cfg.pairs) if cyc.PAIRS[k].task == "stereo"]
-    rows = np.array(stereo + [p + i for i in stereo])
-    pen = occlusion_fill_penalty(px[rows, ..., 0] - target[rows])
-    m = mask[rows]
-    return Masked(jnp.sum(pen * m) / m.size, jnp.ones((), px.dtype))
+    # the stereo pairs' rows alone, still forward then backward: the check pairs each row with its reverse
+    stereo_px = px[np.array(stereo + [p + i for i in stereo])]
+    target, mask = occlusion_fill_targets(stereo_px, len(stereo), cfg)
+    pen = occlusion_fill_penalty(stereo_px[..., 0] - target)
+    return Masked(jnp.sum(pen * mask) / mask.size, jnp.ones((), px.dtype))
 
 
 # ----------------------------------------------------------------------------------- eq. 13: cycle loss

@@ -64,13 +64,14 @@ def regions(gt: np.ndarray, valid: np.ndarray) -> dict[str, np.ndarray]:
             "visible elsewhere": visible & ~band}
 
 
-def region_numbers(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> dict[str, dict[str, float]]:
-    """{region: {"share" %, "epe", "d1" %, "bias" px, "contribution" px}} of one disparity map, and "all"."""
+def region_numbers(pred: np.ndarray, gt: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """{region: {"share" %, "epe", "d1" %, "bias" px, "contribution" px}} of one disparity map over `masks`
+    ({"all": the ground-truth pixels, **`regions`})."""
     err = metrics.endpoint_error(pred, gt)
     bad = metrics.outliers(err, np.abs(gt))
-    n = int(valid.sum())
+    n = int(masks["all"].sum())
     out = {}
-    for name, mask in {"all": valid, **regions(gt, valid)}.items():
+    for name, mask in masks.items():
         k = int(mask.sum())
         out[name] = {"share": 100.0 * k / n, "epe": float(err[mask].mean()), "d1": 100.0 * float(bad[mask].mean()),
                      "bias": float((pred - gt)[mask].mean()), "contribution": float(err[mask].sum() / n)}
@@ -79,9 +80,10 @@ def region_numbers(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> dict[
 
 def left_right_flags(d_left: np.ndarray, d_right: np.ndarray, alpha1: float = 0.01,
                      alpha2: float = 0.5) -> np.ndarray:
-    """Left-image pixels that fail the left-right check (paper eq. 6 on disparities): pixel x with disparity d
-    reads the right view's disparity d' at x - d (linear interpolation) and fails when
-    (d - d')^2 > alpha1 (d^2 + d'^2) + alpha2, or when x - d lies left of the right image (out of view).
+    """Left-image pixels that fail the left-right check (paper eq. 6 on disparities,
+    `geometry.forward_backward_occlusion`): pixel x with disparity d reads the right view's disparity d' at
+    x - d (bilinear) and fails when (d - d')^2 > alpha1 (d^2 + d'^2) + alpha2, or when x - d lies left of the
+    right image (out of view).
 
     Args:
       d_left: (H, W) the left view's disparity px (left x matches right x - d).
@@ -89,15 +91,13 @@ def left_right_flags(d_left: np.ndarray, d_right: np.ndarray, alpha1: float = 0.
     Returns:
       (H, W) bool, True = fails.
     """
-    h, w = d_left.shape
-    x = np.arange(w)[None, :] - d_left
-    x0 = np.clip(np.floor(x).astype(int), 0, w - 1)
-    x1 = np.clip(x0 + 1, 0, w - 1)
-    a = np.clip(x - np.floor(x), 0.0, 1.0)
-    rows = np.arange(h)[:, None]
-    d_read = (1 - a) * d_right[rows, x0] + a * d_right[rows, x1]
-    fails = (d_left - d_read) ** 2 > alpha1 * (d_left ** 2 + d_read ** 2) + alpha2
-    return fails | (x < 0)
+    from bridge_jax import geometry  # imported here: the region split itself needs no jax
+
+    zero = np.zeros_like(d_left)
+    occluded, _ = geometry.forward_backward_occlusion(
+        np.stack([-d_left, zero], -1).astype(np.float32), np.stack([d_right, zero], -1).astype(np.float32),
+        alpha1=alpha1, alpha2=alpha2)
+    return (np.asarray(occluded)[..., 0] > 0) | (np.arange(d_left.shape[1])[None, :] - d_left < 0)
 
 
 def main(argv=None) -> int:
@@ -116,6 +116,7 @@ def main(argv=None) -> int:
     from bridge_jax.eval import real_checks
     moto = real_checks.motorcycle()
     gt, valid = moto["disp"].astype(np.float64), moto["valid"]
+    masks = {"all": valid, **regions(gt, valid)}
     results = {}
     for model in [m for m in args.models.split(",") if m]:
         for polish in [q for q in args.polish.split(",") if q]:
@@ -123,14 +124,14 @@ def main(argv=None) -> int:
                 "refine": args.refine, "symmetry": args.symmetry, "polish": polish})
             d = np.asarray(pred.predict_pair(moto["left"], moto["right"], "stereo"), np.float64)
             label = f"{os.path.basename(model.rstrip('/'))}, polish {polish}"
-            results[label] = region_numbers(d, gt, valid)
+            results[label] = region_numbers(d, gt, masks)
             if args.left_right:
                 # the mirrored pair (flipped right view as the left one) is a left -> right pair whose
                 # disparity, flipped back, is the right view's
                 mirrored = pred.predict_pair(moto["right"][:, ::-1].copy(), moto["left"][:, ::-1].copy(), "stereo")
                 fails = left_right_flags(d, np.asarray(mirrored, np.float64)[:, ::-1])
                 bad = metrics.outliers(metrics.endpoint_error(d, gt), np.abs(gt))
-                for name, mask in {"all": valid, **regions(gt, valid)}.items():
+                for name, mask in masks.items():
                     results[label][name]["fails_left_right"] = 100.0 * float(fails[mask].mean())
                     results[label][name]["outliers_failing"] = 100.0 * float(fails[mask & bad].mean())
             lr_head = " fail LR check % | outliers failing % |" if args.left_right else ""

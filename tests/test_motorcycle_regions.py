@@ -23,7 +23,7 @@ def test_regions_of_a_foreground_block_by_hand():
     # a prediction that bleeds the block over the occluded background: error 8 px on those 8 pixels only
     pred = gt.copy()
     pred[0, 12:20] = 12.0
-    n = mr.region_numbers(pred, gt, valid)
+    n = mr.region_numbers(pred, gt, {"all": valid, **r})
     assert n["occluded"]["epe"] == pytest.approx(8.0) and n["occluded"]["bias"] == pytest.approx(8.0)
     assert n["occluded"]["d1"] == pytest.approx(100.0) and n["out of view"]["epe"] == 0.0
     assert n["all"]["epe"] == pytest.approx(64 / 40)
