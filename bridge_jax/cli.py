@@ -115,11 +115,15 @@ def add_test_time_options(parser: argparse.ArgumentParser) -> None:
                              "transposed for flow pairs ('dihedral', 8x); default: what a shipped model's card "
                              "recommends, else none")
     parser.add_argument("--polish", default=None, choices=testtime.POLISH_MODES,
-                        help="test-time polish of the final maps against the images themselves: 'photometric' "
-                             "lets each pixel take a neighbour's value where that matches clearly better (sharper "
-                             "motion boundaries), then a variational fit (sub-pixel; textureless regions and "
-                             "the image border take their neighbours' motion), twice; 'none' = the "
-                             "network's maps as they are; default: what a shipped model's card recommends, else none")
+                        help="test-time polish of the final maps: 'photometric' lets each pixel take a "
+                             "neighbour's value where that matches the images clearly better (sharper motion "
+                             "boundaries), then a variational fit (sub-pixel; textureless regions and the image "
+                             "border take their neighbours' motion), twice; 'fill' predicts the right view's "
+                             "disparity too and gives the left view's pixels that disagree with it by more than "
+                             f"{testtime.FILL_MAX_DIFFERENCE:g} px (or that the right camera does not see) their row's background "
+                             "disparity (stereo maps only; twice the cost); 'photometric+fill' both, in that "
+                             "order; 'none' = the network's maps as they are; default: what a shipped model's "
+                             "card recommends, else none")
 
 
 def given_test_time(args: argparse.Namespace) -> dict:

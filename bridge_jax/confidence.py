@@ -44,7 +44,7 @@ import numpy as np
 
 from bridge_jax import geometry
 from bridge_jax.resizing import _resize, map_to_input_resolution, resize_weights_align_corners
-from bridge_jax.testtime import TestTime
+from bridge_jax.testtime import FILL_MAX_DIFFERENCE, TestTime
 
 ALPHA1 = 0.01
 """Relative part of the consistency threshold (px^2 per px^2 of motion), the paper's eq. 6 value."""
@@ -190,6 +190,105 @@ DEFAULT_CHECK = "network"
 """The check mode a predictor uses unless told otherwise. On the selection frames the two modes were chosen on,
 the disagreement between the staged forward map and the plain backward one ranked disparity errors better than
 the same stages both ways (and costs about 1.1x instead of 2x); the flow errors the other way round."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The left-right fill: the polish's "fill" step (`testtime.POLISH_MODES`)
+# ----------------------------------------------------------------------------------------------------------
+
+def left_right_difference(d_left: np.ndarray, d_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far the two views' disparities disagree, per pixel of the left view.
+
+    Left pixel (x, y) with disparity d_L is seen by the right camera at x - d_L; the right view's disparity
+    there, d_R(x - d_L) (linear along the row, clamped at the row's ends), should bring it back.
+
+    Args:
+      d_left: `(H, W)` the left view's disparity, px (>= 0 for a sensible map).
+      d_right: `(H, W)` the right view's disparity, px: right pixel x sees left pixel x + d_R(x).
+    Returns:
+      |d_L(x) - d_R(x - d_L(x))| `(H, W)` float32, and `(H, W)` bool: x - d_L(x) lies outside [0, W - 1]
+      (the right camera does not see the pixel; its difference is then read at the clamped end).
+    """
+    d_left = np.asarray(d_left, np.float32)
+    d_right = np.asarray(d_right, np.float32)
+    if d_left.ndim != 2 or d_right.shape != d_left.shape:
+        raise ValueError(f"left_right_difference: expected two (H, W) disparities of one shape, got "
+                         f"{d_left.shape} and {d_right.shape}")
+    h, w = d_left.shape
+    x = np.arange(w, dtype=np.float32)[None, :] - d_left
+    out_of_view = (x < 0) | (x > w - 1)
+    x = np.clip(x, 0, w - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), w - 1)
+    x1 = np.minimum(x0 + 1, w - 1)
+    frac = x - x0
+    rows = np.arange(h)[:, None]
+    at_match = d_right[rows, x0] * (1 - frac) + d_right[rows, x1] * frac
+    return np.abs(d_left - at_match).astype(np.float32), out_of_view
+
+
+def background_fill(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill holes like the KITTI devkit's background interpolation (`interpolateBackground`): row by row, each
+    run of invalid pixels between two valid ones takes the smaller (farther) of their two disparities, a run
+    touching the row's left or right end takes its one valid neighbour; then a row without any valid pixel takes,
+    column by column, the filled row nearest above or below it (the smaller of the two where it lies between
+    filled rows: the devkit fills only those above the first and below the last). No valid pixel at all: 0.
+
+    Args:
+      disp: ``(H, W)`` disparity px; valid: ``(H, W)`` bool.
+    Returns:
+      ``(H, W)`` float32, dense.
+    """
+    disp = np.asarray(disp, np.float32)
+    valid = np.asarray(valid, bool)
+    if disp.ndim != 2 or valid.shape != disp.shape:
+        raise ValueError(f"background_fill: expected (H, W) disparity and mask of one shape, got "
+                         f"{disp.shape} and {valid.shape}")
+    h, w = disp.shape
+    rows = np.arange(h)[:, None]
+    cols = np.broadcast_to(np.arange(w)[None, :], (h, w))
+    # the nearest valid column at or left of each pixel (-1: none), and at or right of it (w: none)
+    left_idx = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    right_idx = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
+    left = np.where(left_idx >= 0, disp[rows, np.clip(left_idx, 0, w - 1)], np.inf)
+    right = np.where(right_idx < w, disp[rows, np.clip(right_idx, 0, w - 1)], np.inf)
+    out = np.where(valid, disp, np.minimum(left, right))  # one end missing: min picks the other one
+    row_ok = valid.any(axis=1)
+    if not row_ok.any():
+        return np.zeros((h, w), np.float32)
+    if not row_ok.all():  # the same two scans along the columns, over whole rows
+        r = np.arange(h)
+        above = np.maximum.accumulate(np.where(row_ok, r, -1))
+        below = np.minimum.accumulate(np.where(row_ok, r, h)[::-1])[::-1]
+        up = np.where((above >= 0)[:, None], out[np.clip(above, 0, h - 1)], np.inf)
+        down = np.where((below < h)[:, None], out[np.clip(below, 0, h - 1)], np.inf)
+        out = np.where(row_ok[:, None], out, np.minimum(up, down))
+    return out.astype(np.float32)
+
+
+def left_right_fill(d_left: np.ndarray, d_right: np.ndarray,
+                    max_difference: float = FILL_MAX_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:
+    """The left view's disparity with the pixels that fail the left-right check replaced by their row's
+    background (the step that makes a semi-global matcher's maps strong, here on a network's two maps).
+
+    A pixel fails when `left_right_difference` exceeds `max_difference` px or its match lies outside the right
+    image; failed pixels are filled by `background_fill`: each run of them takes the smaller (farther) disparity
+    of its two passing ends, since a pixel one view cannot see is background hidden by a nearer surface.
+
+    Args:
+      d_left, d_right: `(H, W)` disparities of the left and the right view, px (`left_right_difference`).
+      max_difference: the check's tolerance, px.
+    Returns:
+      (filled `(H, W)` float32, failed `(H, W)` bool: the pixels that were replaced).
+    """
+    difference, out_of_view = left_right_difference(d_left, d_right)
+    failed = (difference > max_difference) | out_of_view
+    return background_fill(d_left, ~failed), failed
+
+
+def right_view_disparity(reverse_prediction: np.ndarray) -> np.ndarray:
+    """The right view's disparity `(H, W)` from the prediction of a stereo pair's `reverse_job` (the pair
+    swapped and flipped left-right, a left -> right pair itself) at the input resolution: flipped back."""
+    return np.ascontiguousarray(np.asarray(reverse_prediction, np.float32)[:, ::-1])
 
 
 def check_record(mode: str, test_time: TestTime, option: str = "check mode") -> TestTime:

@@ -98,6 +98,21 @@ def _working_size(args) -> tuple[int, int] | None:
     return (trained.height if args.height is None else args.height, trained.width if args.width is None else args.width)
 
 
+def without_fill(test_time: testtime.TestTime, given: str | None) -> testtime.TestTime:
+    """The test-time record an artifact can hold: the polish's fill step runs on the host after the network (it
+    predicts each stereo pair's right view too, `Predictor.fill_stereo`), so it cannot be part of one program.
+    When the fill came from a card's recommendation it is dropped with a notice on stderr; when the user asked
+    for it (`given`, their --polish), a ValueError naming --polish."""
+    rest = test_time.photometric_part
+    if given is not None:
+        raise ValueError(f"--polish {given}: the fill step runs on the host after the network (it predicts the right "
+                         f"view too) and cannot be exported; use --polish {rest.polish} and fill the artifact's "
+                         f"disparities with bridge_jax.confidence.left_right_fill")
+    print(f"bridge-export: the card's polish {test_time.polish} runs its fill step on the host; the artifact "
+          f"holds --polish {rest.polish}", file=sys.stderr)
+    return rest
+
+
 @cli.entry_point
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -111,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         predictor = inference.load_predictor(args.checkpoint, size=_working_size(args), dtype=args.dtype,
                                              size_option="--height/--width",
                                              test_time=cli.given_test_time(args), options=testtime.OPTIONS)
+        if predictor.test_time.fill:
+            predictor.test_time = without_fill(predictor.test_time, args.polish)
         if args.format == "onnx":
             out = onnx_export.save_model(onnx_export.export_onnx(predictor, batch=args.batch, task=args.task),
                                          args.out)

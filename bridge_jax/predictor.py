@@ -179,8 +179,9 @@ class Predictor:
     def _polish_program(self, pairs: jax.Array, maps: jax.Array, flow_rows: np.ndarray) -> jax.Array:
         """The polish program (stage 3) run on `maps`: compiled at full optimisation whatever `compile_mode`
         (`stages.POLISH_APART`), kept per shape, test-time record and `PolishConfig` (`_kept_program`)."""
-        args = (pairs, maps, flow_rows, self.test_time, self.polish_config)
-        key = ("polish", tuple(pairs.shape), str(pairs.dtype), self.test_time, self.polish_config)
+        test_time = self.test_time.photometric_part  # the fill runs on the host (`fill_stereo`)
+        args = (pairs, maps, flow_rows, test_time, self.polish_config)
+        key = ("polish", tuple(pairs.shape), str(pairs.dtype), test_time, self.polish_config)
         return self._kept_program(key, _POLISH_JIT, args, {"program": "polish"}, _POLISH_STATIC)(*args)
 
     def lower(self, batch: int, task: str = "flow"):
@@ -271,15 +272,49 @@ class Predictor:
         With `confidence`, each job's entry is `(prediction, confidence (h, w) float32 in [0, 1], occlusion
         (h, w) bool)` from the consistency check of `bridge_jax.confidence` (forward-backward for flow,
         left-right for disparity): the jobs' backward maps are predicted too, with the stages of `check`
-        (`confidence.default_check` of `test_time` when None), in the same batches when those are the same."""
-        if not confidence:
-            maps = self.working_maps(jobs, batch)
-            return [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
+        (`confidence.default_check` of `test_time` when None), in the same batches when those are the same.
+
+        When the polish has its fill step (`testtime.POLISH_STEPS`), each stereo job's reverse pair is predicted
+        too, with this predictor's own stages, and the disparity is filled where the left-right check fails
+        (`fill_stereo`); its confidence and occlusion are those of the check of the map before the fill (the
+        filled pixels are the ones the check distrusted)."""
         jobs = [(check_task(task), a, b) for task, a, b in jobs]
+        # the reverse pairs the fill needs (run with this predictor's own stages), in the forward pairs' batches
+        fill = self.fill_jobs(jobs)
+        if not confidence:
+            maps = self.working_maps(jobs + [checks.reverse_job(*jobs[i]) for i in fill], batch)
+            out = [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
+            return self.fill_stereo(jobs, out, maps[len(jobs):])
+        n = len(jobs)
         if self._check_record() == self.test_time:
             maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in jobs], batch)  # shared batches
-            return self.checked_predictions(jobs, maps[:len(jobs)], maps[len(jobs):])
-        return self.checked_predictions(jobs, self.working_maps(jobs, batch), self.backward_maps(jobs, batch))
+            rows = self.checked_predictions(jobs, maps[:n], maps[n:])
+            reverse = [maps[n + i] for i in fill]
+        else:
+            maps = self.working_maps(jobs + [checks.reverse_job(*jobs[i]) for i in fill], batch)
+            rows = self.checked_predictions(jobs, maps[:n], self.backward_maps(jobs, batch))
+            reverse = maps[n:]
+        filled = self.fill_stereo(jobs, [r[0] for r in rows], reverse)
+        return [(value, conf, occ) for value, (_, conf, occ) in zip(filled, rows)]
+
+    def fill_jobs(self, jobs: Sequence[tuple[str, Any, Any]]) -> list[int]:
+        """Indices of the `jobs` the polish's fill step changes: the stereo jobs when `test_time.fill`, else
+        none."""
+        return [i for i, (task, _, _) in enumerate(jobs) if check_task(task) == "stereo"] if self.test_time.fill else []
+
+    def fill_stereo(self, jobs: Sequence[tuple[str, Any, Any]], predictions: list,
+                    reverse_maps: Sequence[np.ndarray]) -> list:
+        """The polish's fill step (`testtime.POLISH_STEPS`): `predictions` (at the input resolution, one per
+        job) with each stereo job's disparity passed through `confidence.left_right_fill` against the right
+        view's disparity. `reverse_maps`: the working-size maps of the `fill_jobs` jobs' `confidence.reverse_job`
+        pairs, in that order, predicted with this predictor's own stages (a check is sharp only between maps that
+        went through the same stages). Other jobs come back as they are."""
+        out = list(predictions)
+        for i, reverse in zip(self.fill_jobs(jobs), reverse_maps, strict=True):
+            height, width = input_size(jobs[i][1])
+            d_right = checks.right_view_disparity(map_to_input_resolution("stereo", reverse, height, width))
+            out[i] = checks.left_right_fill(out[i], d_right)[0]
+        return out
 
     def backward_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """Working-size maps of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
@@ -328,6 +363,11 @@ class Predictor:
             if occlusion:
                 out += (np.stack([r[2] for r in rows]),)
             return out
+        if self.test_time.fill and check_task(task) == "stereo":  # the fill predicts the right views too
+            if len(images_a) != len(images_b):
+                raise ValueError(f"need the same number of first and second images, got {len(images_a)} "
+                                 f"and {len(images_b)}")
+            return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a) or None))
         pairs, (h, w) = self.prepare(images_a, images_b)
         maps = self.run_network(pairs, check_task(task))
         if task == "flow":

@@ -146,17 +146,18 @@ def network_maps(network: Network, params, pairs: jax.Array, tasks: tuple[str, .
 
 def polish_stage(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array, test_time: TestTime,
                  config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
-    """Stage 3: `maps` polished as `test_time.polish` says ("photometric": `polish.polish_maps` with `config`)."""
-    return polish_maps(pairs, maps, flow_rows, config) if test_time.polish == "photometric" else maps
+    """Stage 3: `maps` polished by the photometric step when `test_time.polish` has it (`polish.polish_maps`
+    with `config`). The polish's "fill" step runs on the host at the input resolution (`Predictor.predict`)."""
+    return polish_maps(pairs, maps, flow_rows, config) if test_time.photometric else maps
 
 
 def predicted_maps(pairs, flow_rows, test_time: TestTime, network_program: Callable,
                    polish_program: Optional[Callable] = None):
     """What a predictor answers for `pairs`: `network_program(pairs)` (stages 1-2, `network_maps`), then, when
-    `test_time` asks for a polish, `polish_program(pairs, maps, flow_rows)` (stage 3, `polish_stage`;
+    `test_time`'s polish has its photometric step, `polish_program(pairs, maps, flow_rows)` (stage 3, `polish_stage`;
     default: traced into the caller's program). Both may be traced functions or compiled programs."""
     maps = network_program(pairs)
-    if test_time.polish == "none":
+    if not test_time.photometric:
         return maps
     if polish_program is None:
         return polish_stage(pairs, maps, flow_rows, test_time)

@@ -9,7 +9,9 @@ Fields, each one stage of `bridge_jax.stages` (run in this order, `stages.predic
 * `symmetry`: average every network call over mirrored (and transposed) copies of the pair (`SYMMETRY_MODES`);
 * `refine`: run the network K more times per pair on `b` warped by the maps so far, composing what it still
   finds with them (0 .. `MAX_REFINE`);
-* `polish`: correct the final maps against the images at the working size (`POLISH_MODES`; `bridge_jax.polish`).
+* `polish`: correct the final maps after the network (`POLISH_MODES`): "photometric" against the images at the
+  working size (`bridge_jax.polish`), "fill" by the left-right check of stereo maps at the input resolution
+  (`confidence.left_right_fill`), or both ("photometric+fill", in that order). "none" = the network's own maps.
 
 A record is checked when it is made, so a `Predictor` never holds an unknown setting; it is hashable and
 compares by value, so compiled programs are kept per record. `with_given` applies the settings a user gave
@@ -28,8 +30,18 @@ SYMMETRY_MODES = ("none", "flips", "dihedral")
 """Test-time symmetry averaging (`stages.symmetric_maps`): "none"; "flips" = the pair as given and flipped
 left-right, upside-down and both (4 network calls' worth); "dihedral" = those 4 and the same 4 transposed (8).
 Stereo pairs count only the copies that are still left -> right stereo pairs: as given and upside-down."""
-POLISH_MODES = ("none", "photometric")
-"""Test-time polish of a predictor's maps: "none", or "photometric" (`polish.polish_maps`)."""
+POLISH_STEPS = ("photometric", "fill")
+"""The steps a polish may run, in the order they run: "photometric" (`polish.polish_maps`, every map, at the
+working size) and "fill" (stereo maps only: the right view's disparity is predicted too, and the left view's
+pixels that fail the left-right check take their row's background disparity, `confidence.left_right_fill`;
+flow maps are left as they are)."""
+FILL_MAX_DIFFERENCE = 1.0
+"""The fill step's tolerance, pixels of the input resolution: a left disparity that differs from the right view's
+disparity at its match by more than this is replaced (`confidence.left_right_fill`). The value the standard
+semi-global matcher uses for the same check (`eval.baselines.sgbm_disparity`, ``disp12MaxDiff`` 1), taken as it
+is, not tuned on any score."""
+POLISH_MODES = ("none", "photometric", "fill", "photometric+fill")
+"""Test-time polish of a predictor's maps: "none", or "+"-joined `POLISH_STEPS` in their order."""
 OPTIONS = {"refine": "--refine", "symmetry": "--symmetry", "polish": "--polish"}
 """The command-line option of each field."""
 CARD_KEYS = {"refine": "default_refine", "symmetry": "default_symmetry", "polish": "default_polish"}
@@ -72,6 +84,27 @@ class TestTime:
         return dataclasses.replace(self, **{f: _check(f, v, names[f]) for f, v in given.items() if v is not None})
 
     @property
+    def polish_steps(self) -> tuple[str, ...]:
+        """The steps of `polish` (`POLISH_STEPS`), in the order they run; () for "none"."""
+        return () if self.polish == "none" else tuple(self.polish.split("+"))
+
+    @property
+    def photometric(self) -> bool:
+        """Whether the polish runs its photometric step (`bridge_jax.polish`)."""
+        return "photometric" in self.polish_steps
+
+    @property
+    def fill(self) -> bool:
+        """Whether the polish runs the left-right fill of stereo maps (`confidence.left_right_fill`)."""
+        return "fill" in self.polish_steps
+
+    @property
+    def photometric_part(self) -> "TestTime":
+        """This record with the polish cut to its photometric step: what the compiled polish program runs (the
+        fill runs on the host afterwards), so "photometric" and "photometric+fill" share one program."""
+        return dataclasses.replace(self, polish="photometric" if self.photometric else "none")
+
+    @property
     def network_part(self) -> "TestTime":
         """The stages that run inside the network program (all but the polish: `stages.POLISH_APART`)."""
         return dataclasses.replace(self, polish="none")
@@ -87,4 +120,4 @@ class TestTime:
         return cls(**{f: card[key] for f, key in CARD_KEYS.items() if card.get(key) is not None})
 
 
-__all__ = ["TestTime", "MAX_REFINE", "SYMMETRY_MODES", "POLISH_MODES", "OPTIONS", "CARD_KEYS"]
+__all__ = ["TestTime", "MAX_REFINE", "SYMMETRY_MODES", "POLISH_MODES", "POLISH_STEPS", "FILL_MAX_DIFFERENCE", "OPTIONS", "CARD_KEYS"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bridge_jax import confidence, inference, metrics, predict
+from tests.scenes import KnownMaps
 
 H, W = 128, 256
 
@@ -90,24 +91,6 @@ def test_to_input_resolution_resizes_the_score_not_the_confidence():
     assert not occ[0, 7] and occ[0, 8]
 
 
-class _KnownMaps:
-    """Stands in for `Predictor.working_maps`: the exact working-size maps of hand-built scenes, found by the
-    images of each job (so a reverse pair built the wrong way finds no map and fails)."""
-
-    def __init__(self, entries):
-        self.entries = entries   # [(task, image a, image b, map (H, W, 2))]
-        self.calls = []
-
-    def __call__(self, jobs, batch=None):
-        self.calls.append(len(jobs))
-        out = []
-        for task, a, b in jobs:
-            hits = [m for t, ea, eb, m in self.entries if t == task and np.array_equal(ea, a) and np.array_equal(eb, b)]
-            assert hits, "a job whose images match no hand-built pair"
-            out.append(hits[0])
-        return out
-
-
 @pytest.fixture(scope="module")
 def predictor(tiny_checkpoint):
     return inference.load_predictor(tiny_checkpoint, size=(H, W), executable_cache=None)
@@ -124,7 +107,7 @@ def _stereo_entries(left, right):
 
 def test_left_right_check_through_the_predictor_finds_the_hand_derived_occlusion(predictor, monkeypatch):
     left, right = _texture(1), _texture(2)
-    monkeypatch.setattr(predictor, "working_maps", _KnownMaps(_stereo_entries(left, right)))
+    monkeypatch.setattr(predictor, "working_maps", KnownMaps(_stereo_entries(left, right)))
     disp, conf, occ = predictor.predict_pair(left, right, "stereo", confidence=True, occlusion=True)
     d_left, _ = _stereo_scene()
     np.testing.assert_allclose(disp, d_left)
@@ -158,7 +141,7 @@ def test_forward_backward_check_of_a_cycle(predictor, monkeypatch):
     fw, bw = _flow_scene()
     entries = _stereo_entries(lt, rt) + _stereo_entries(lt1, rt1)
     entries += [("flow", lt, lt1, fw), ("flow", lt1, lt, bw)]
-    monkeypatch.setattr(predictor, "working_maps", _KnownMaps(entries))
+    monkeypatch.setattr(predictor, "working_maps", KnownMaps(entries))
     out = predictor.predict_cycle(lt, rt, lt1, rt1, confidence=True, occlusion=True)
     assert sorted(out) == sorted(["disp_t", "disp_t1", "flow", "conf_disp_t", "conf_disp_t1", "conf_flow",
                                   "occ_disp_t", "occ_disp_t1", "occ_flow"])
@@ -174,7 +157,7 @@ def test_forward_backward_check_of_a_cycle(predictor, monkeypatch):
 
 def test_a_check_with_its_own_stages_runs_the_reverse_pairs_apart(predictor, monkeypatch):
     left, right = _texture(7), _texture(8)
-    fake = _KnownMaps(_stereo_entries(left, right))
+    fake = KnownMaps(_stereo_entries(left, right))
     seen = []
 
     def record(jobs, batch=None):
@@ -207,7 +190,7 @@ def test_the_check_mode_sets_the_occlusion_threshold(predictor, monkeypatch):
     fw[40:60, 100:110, 0] = 2.0
     bw = np.zeros((H, W, 2), np.float32)
     bw[40:60, 102:112, 0] = -2.0
-    monkeypatch.setattr(predictor, "working_maps", _KnownMaps([("flow", a, b, fw), ("flow", b, a, bw)]))
+    monkeypatch.setattr(predictor, "working_maps", KnownMaps([("flow", a, b, fw), ("flow", b, a, bw)]))
     covered = np.zeros((H, W), bool)
     covered[40:60, 110:112] = True
     _, occ = predictor.predict_pair(a, b, occlusion=True)                  # plain stages both ways: "same"

@@ -13,6 +13,7 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
+from bridge_jax.confidence import background_fill
 from bridge_jax.eval.datasets import Frame
 from bridge_jax.eval.methods import complete, frame_jobs
 
@@ -34,43 +35,9 @@ def _rgb_pair(a: np.ndarray, b: np.ndarray, what: str) -> None:
         raise ValueError(f"{what}: the two images differ in size, {a.shape[:2]} and {b.shape[:2]}")
 
 
-def fill_invalid_disparity(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill holes like the KITTI devkit's background interpolation (`interpolateBackground`): row by row, each
-    run of invalid pixels between two valid ones takes the smaller (farther) of their two disparities, a run
-    touching the row's left or right end takes its one valid neighbour; then a row without any valid pixel takes,
-    column by column, the filled row nearest above or below it (the smaller of the two where it lies between
-    filled rows: the devkit fills only those above the first and below the last). No valid pixel at all: 0.
-
-    Args:
-      disp: ``(H, W)`` disparity px; valid: ``(H, W)`` bool.
-    Returns:
-      ``(H, W)`` float32, dense.
-    """
-    disp = np.asarray(disp, np.float32)
-    valid = np.asarray(valid, bool)
-    if disp.ndim != 2 or valid.shape != disp.shape:
-        raise ValueError(f"fill_invalid_disparity: expected (H, W) disparity and mask of one shape, got "
-                         f"{disp.shape} and {valid.shape}")
-    h, w = disp.shape
-    rows = np.arange(h)[:, None]
-    cols = np.broadcast_to(np.arange(w)[None, :], (h, w))
-    # the nearest valid column at or left of each pixel (-1: none), and at or right of it (w: none)
-    left_idx = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    right_idx = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
-    left = np.where(left_idx >= 0, disp[rows, np.clip(left_idx, 0, w - 1)], np.inf)
-    right = np.where(right_idx < w, disp[rows, np.clip(right_idx, 0, w - 1)], np.inf)
-    out = np.where(valid, disp, np.minimum(left, right))  # one end missing: min picks the other one
-    row_ok = valid.any(axis=1)
-    if not row_ok.any():
-        return np.zeros((h, w), np.float32)
-    if not row_ok.all():  # the same two scans along the columns, over whole rows
-        r = np.arange(h)
-        above = np.maximum.accumulate(np.where(row_ok, r, -1))
-        below = np.minimum.accumulate(np.where(row_ok, r, h)[::-1])[::-1]
-        up = np.where((above >= 0)[:, None], out[np.clip(above, 0, h - 1)], np.inf)
-        down = np.where((below < h)[:, None], out[np.clip(below, 0, h - 1)], np.inf)
-        out = np.where(row_ok[:, None], out, np.minimum(up, down))
-    return out.astype(np.float32)
+fill_invalid_disparity = background_fill
+"""The KITTI devkit's background interpolation (`confidence.background_fill`): the SGBM baseline's hole fill and
+the test-time left-right fill share it."""
 
 
 SGBM_SEARCH_DEFAULT = 192

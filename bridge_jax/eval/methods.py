@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 from bridge_jax import geometry
+from bridge_jax.confidence import reverse_job
 from bridge_jax.eval.datasets import Frame
 from bridge_jax.inference import map_to_input_resolution
 
@@ -102,12 +103,18 @@ class ModelMethod:
             self.batch_pairs = len(self._jobs(frames[0])) * self.batch_frames
         t0 = time.perf_counter()
         maps = self.predictor.working_maps(jobs, self.batch_pairs)
+        # the polish's fill step (stereo jobs only): the right views' maps, then `Predictor.fill_stereo`
+        fill = self.predictor.fill_jobs(jobs)
+        reverse = self.predictor.working_maps([reverse_job(*jobs[j]) for j in fill], self.batch_pairs) if fill else []
+        at_input = self.predictor.fill_stereo(
+            jobs, [None if key == "flow_bwd" else map_to_input_resolution(task, m, *image_a.shape[:2])
+                   for (_, key), (task, image_a, _), m in zip(owners, jobs, maps)], reverse)
         preds: list[dict[str, np.ndarray]] = [{} for _ in frames]
         working = {}
-        for (i, key), (task, image_a, _), m in zip(owners, jobs, maps):
+        for (i, key), m, value in zip(owners, maps, at_input):
             working[i, key] = m
             if key != "flow_bwd":
-                preds[i][key] = map_to_input_resolution(task, m, *image_a.shape[:2])
+                preds[i][key] = value
         self.inference_s += time.perf_counter() - t0
         for i, frame in enumerate(frames):
             if (i, "flow_bwd") in working:

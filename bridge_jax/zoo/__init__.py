@@ -72,7 +72,7 @@ _ENTRIES: dict[str, Entry] = {
                   "per-camera photometric differences, vertical motion), with self-supervision and the census loss "
                   "(five stages run by hand, the recipe `long:legacy`: `bridge-zoo show long`); for "
                   "your own images; by default at --working-size native with one --refine pass, --symmetry "
-                  "flips and --polish photometric"),
+                  "flips and --polish photometric+fill"),
     **{f"upstream_ver_{v}": Entry(
         f"upstream_ver_{v}", "local",
         f"the upstream authors' released resnet_md weights `monodepth_ver_{v}.pth` (retrained after the paper; "

@@ -1,0 +1,181 @@
+"""The polish's fill step (`confidence.left_right_fill`, `TestTime(polish="...+fill")`, `Predictor.fill_stereo`):
+the left-right difference and the background fill on rows derived by hand, and the predictor's fill against the
+same hand-derived answer with the network's maps injected."""
+
+import numpy as np
+import pytest
+
+from bridge_jax import confidence, export, inference, testtime
+from bridge_jax.eval.datasets import Frame
+from bridge_jax.eval.methods import ModelMethod
+from bridge_jax.testtime import TestTime
+from tests.scenes import KnownMaps
+
+H, W = 64, 128
+
+
+def test_left_right_difference_by_hand():
+    # right view's disparity 0, 10, 20, 30 along the row; the left disparities send columns 0..3 to 0, 0.5, 0.5, -2
+    d_right = np.array([[0.0, 10.0, 20.0, 30.0]], np.float32)
+    d_left = np.array([[0.0, 0.5, 1.5, 5.0]], np.float32)
+    diff, out = confidence.left_right_difference(d_left, d_right)
+    # column 1 and 2 read half way between 0 and 10 (5); column 3 lies left of the image, read at column 0
+    np.testing.assert_allclose(diff, [[0.0, 4.5, 3.5, 5.0]])
+    assert out.tolist() == [[False, False, False, True]]
+
+
+def _bled_row():
+    """One row, 16 px. Truth: background at disparity 2, a foreground block at left columns 9-12 at disparity 5,
+    seen by the right camera at columns 4-7. The left view's background at columns 6-8 lands on 4-6 in the right
+    view, behind the block: hidden there. The right view's disparity (truth): 5 at 4-7, 2 elsewhere (its own
+    columns 8-10 are background the left view cannot see). The left map bleeds the block's disparity 2 px to the
+    left (columns 7 and 8), as a network does."""
+    d_right = np.full((1, 16), 2.0, np.float32)
+    d_right[0, 4:8] = 5.0
+    d_left = np.full((1, 16), 2.0, np.float32)
+    d_left[0, 7:13] = 5.0
+    return d_left, d_right
+
+
+def test_the_fill_gives_a_bled_occlusion_its_background_by_hand():
+    d_left, d_right = _bled_row()
+    filled, failed = confidence.left_right_fill(d_left, d_right)
+    # columns 0-1 match left of the right image; 6 (background behind the block: the right view says 5 at
+    # column 4); 7-8 (5 lands on background 2 at columns 2-3). The run 6-8 lies between column 5 (2) and column
+    # 9 (5): the farther, 2. The run 0-1 touches the row's start: its one end, column 2 (2).
+    assert np.flatnonzero(failed[0]).tolist() == [0, 1, 6, 7, 8]
+    expected = np.full(16, 2.0, np.float32)
+    expected[9:13] = 5.0
+    np.testing.assert_array_equal(filled[0], expected)
+
+
+def test_the_fill_keeps_a_consistent_map_and_its_tolerance_is_one_pixel():
+    d_left, d_right = _bled_row()
+    d_left[0, 7:9] = 2.0  # the truth: nothing bled
+    d_left[0, 3:6] += 0.9  # within the tolerance of the check (the right view says 2 at their matches, 0.1-2.1)
+    filled, failed = confidence.left_right_fill(d_left, d_right)
+    # the truly hidden columns 6-8 fail on their own (background 2 lands on the block's 5 in the right view)
+    assert np.flatnonzero(failed[0]).tolist() == [0, 1, 6, 7, 8]
+    np.testing.assert_array_equal(filled[0, 2:6], d_left[0, 2:6])
+    np.testing.assert_allclose(filled[0, 6:9], 2.9)  # between column 5 (2.9) and 9 (5): the farther
+    d_left[0, 4] += 0.2  # 1.1 px off: fails, takes the smaller of its ends (2.9 and 2.9)
+    filled, failed = confidence.left_right_fill(d_left, d_right)
+    assert failed[0, 4] and filled[0, 4] == pytest.approx(2.9)
+
+
+def test_polish_modes_split_into_their_steps():
+    assert TestTime().polish_steps == ()
+    both = TestTime(polish="photometric+fill")
+    assert both.polish_steps == ("photometric", "fill") and both.photometric and both.fill
+    assert both.photometric_part == TestTime(polish="photometric")
+    fill = TestTime(polish="fill")
+    assert fill.fill and not fill.photometric and fill.photometric_part == TestTime()
+    with pytest.raises(ValueError, match="polish 'fill\\+photometric'"):
+        TestTime(polish="fill+photometric")
+    with pytest.raises(ValueError, match="--polish 'sharpen'"):
+        TestTime().with_given({"polish": "sharpen"}, testtime.OPTIONS)
+
+
+def _scene():
+    """Rows of `_bled_row`'s kind at the working size: background 2, a block at left columns 60-79 (disparity
+    6) seen at 54-73 in the right view; the left map bleeds 6 over columns 55-59 (of which 56-59 are hidden
+    behind the block in the right view). Returns (d_left (with the bleed), d_right, d_left filled by hand)."""
+    d_right = np.full((H, W), 2.0, np.float32)
+    d_right[20:40, 54:74] = 6.0
+    d_left = np.full((H, W), 2.0, np.float32)
+    d_left[20:40, 55:80] = 6.0
+    expected = np.full((H, W), 2.0, np.float32)
+    expected[20:40, 60:80] = 6.0
+    # columns 0 and 1 match left of the right image: filled from column 2 (2), the value they had
+    return d_left, d_right, expected
+
+
+@pytest.fixture(scope="module")
+def predictor(tiny_checkpoint):
+    return inference.load_predictor(tiny_checkpoint, size=(H, W), executable_cache=None)
+
+
+def _images():
+    rng = np.random.default_rng(0)
+    return [rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(4)]
+
+
+def _entries(left, right, flow_b):
+    d_left, d_right, _ = _scene()
+    zeros = np.zeros((H, W), np.float32)
+    flow = np.full((H, W, 2), 1.5, np.float32)
+    return [("stereo", left, right, np.stack([-d_left, zeros], -1)),
+            ("stereo", right[:, ::-1], left[:, ::-1], np.stack([-d_right[:, ::-1], zeros], -1)),
+            ("flow", left, flow_b, flow)]
+
+
+def _filling(predictor, monkeypatch, left, right, later):
+    """`predictor` with the hand-built maps of `_entries` injected and the polish's fill step on; the injected
+    maps (their `calls`)."""
+    known = KnownMaps(_entries(left, right, later))
+    monkeypatch.setattr(predictor, "working_maps", known)
+    monkeypatch.setattr(predictor, "test_time", TestTime(polish="fill"))
+    return known
+
+
+def test_the_predictor_fills_stereo_maps_and_leaves_flow_alone(predictor, monkeypatch):
+    left, right, later, _ = _images()
+    d_left, _, expected = _scene()
+    known = _filling(predictor, monkeypatch, left, right, later)
+    disp, flow = predictor.predict([("stereo", left, right), ("flow", left, later)])
+    np.testing.assert_array_equal(disp, expected)
+    np.testing.assert_array_equal(flow, np.full((H, W, 2), 1.5, np.float32))
+    assert known.calls == [3]  # the right view's pair in the same call as the two jobs
+    # the same through predict_pair (a batch of one stereo pair) and with confidence: the map is filled, the
+    # occlusion is that of the check of the map before the fill: the bled columns 55-59 (6 lands on the right
+    # view's background 2 at 49-53; score 4^2 / (0.01 (36 + 4) + 0.5) = 17.8, above the default check's 16)
+    np.testing.assert_array_equal(predictor.predict_pair(left, right, "stereo"), expected)
+    filled, occ = predictor.predict_pair(left, right, "stereo", occlusion=True)
+    np.testing.assert_array_equal(filled, expected)
+    assert occ[30, 55:60].all() and not occ[30, 60:80].any() and not occ[30, 2:50].any()
+    # without the fill step the map is the network's own
+    monkeypatch.setattr(predictor, "test_time", TestTime())
+    np.testing.assert_array_equal(predictor.predict([("stereo", left, right)])[0], d_left)
+
+
+def test_evaluation_runs_the_fill_too(predictor, monkeypatch):
+    left, right, later, _ = _images()
+    _, _, expected = _scene()
+    known = _filling(predictor, monkeypatch, left, right, later)
+    frame = Frame("hand", {"left_t": left, "right_t": right, "left_t1": later}, {})
+    pred = ModelMethod(predictor)([frame])[0]
+    np.testing.assert_array_equal(pred["disp_t"], expected)
+    np.testing.assert_array_equal(pred["flow"], np.full((H, W, 2), 1.5, np.float32))
+    assert known.calls == [2, 1]  # the frame's two pairs, then the right view's
+
+
+def test_export_drops_a_cards_fill_and_refuses_a_given_one():
+    card = TestTime(refine=1, polish="photometric+fill")
+    assert export.without_fill(card, None) == TestTime(refine=1, polish="photometric")
+    with pytest.raises(ValueError, match="--polish fill: .*cannot be exported; use --polish none"):
+        export.without_fill(TestTime(polish="fill"), "fill")
+
+
+def test_predict_cli_fills_a_stereo_pair_as_the_library_composes_it(tiny_checkpoint, tmp_path):
+    """`bridge-predict --task stereo --polish fill`: the written disparity is the plain prediction filled against
+    the plain prediction of the swapped, mirrored pair (flipped back): the wiring of which view is which."""
+    import cv2
+    from bridge_jax import predict
+    rng = np.random.default_rng(3)
+    left = cv2.resize(rng.integers(0, 255, (H // 4, W // 4, 3), dtype=np.uint8), (W, H), interpolation=cv2.INTER_CUBIC)
+    right = np.ascontiguousarray(np.roll(left, -4, axis=1))
+    pl, pr = tmp_path / "l.png", tmp_path / "r.png"
+    cv2.imwrite(str(pl), left[..., ::-1])
+    cv2.imwrite(str(pr), right[..., ::-1])
+    out = tmp_path / "out"
+    assert predict.main(["--checkpoint", tiny_checkpoint, str(pl), str(pr), "--task", "stereo", "--out", str(out),
+                         "--working-size", f"{H}x{W}", "--refine", "0", "--symmetry", "none", "--polish", "fill",
+                         "--raw", "npy", "--no-progress"]) == 0
+    written = np.load(out / "disparity_npy" / "l.npy")
+    plain = inference.load_predictor(tiny_checkpoint, size=(H, W), executable_cache=None)
+    d_left = plain.predict_pair(left, right, "stereo")
+    d_right = plain.predict_pair(right[:, ::-1], left[:, ::-1], "stereo")[:, ::-1]
+    expected, failed = confidence.left_right_fill(d_left, d_right)
+    assert failed.any() and not failed.all()  # an untrained network: the check fails somewhere, not everywhere
+    np.testing.assert_allclose(written, expected, atol=1e-5)
+    assert not np.allclose(written, d_left)
