@@ -363,11 +363,9 @@ class Predictor:
             if occlusion:
                 out += (np.stack([r[2] for r in rows]),)
             return out
-        if self.test_time.fill and check_task(task) == "stereo":  # the fill predicts the right views too
-            if len(images_a) != len(images_b):
-                raise ValueError(f"need the same number of first and second images, got {len(images_a)} "
-                                 f"and {len(images_b)}")
-            return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a) or None))
+        if self.test_time.fill and check_task(task) == "stereo" and len(images_a) and len(images_a) == len(images_b):
+            # the fill predicts the right views too (`predict`); bad inputs take the path below, which names them
+            return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a)))
         pairs, (h, w) = self.prepare(images_a, images_b)
         maps = self.run_network(pairs, check_task(task))
         if task == "flow":

@@ -58,14 +58,16 @@ def gt_maps(gt, h, w, num_scales=4, pairs=tuple(range(4))):
 class KnownMaps:
     """Stands in for `Predictor.working_maps`: the exact working-size maps of hand-built scenes, found by the
     images of each job (so a reverse pair built the wrong way finds no map and fails). `calls`: the number of
-    jobs of each call."""
+    jobs of each call; `batches`: the `batch` each call asked for."""
 
     def __init__(self, entries):
         self.entries = entries   # [(task, image a, image b, map (H, W, 2))]
         self.calls = []
+        self.batches = []
 
     def __call__(self, jobs, batch=None):
         self.calls.append(len(jobs))
+        self.batches.append(batch)
         out = []
         for task, a, b in jobs:
             hits = [m for t, ea, eb, m in self.entries if t == task and np.array_equal(ea, a) and np.array_equal(eb, b)]

@@ -179,3 +179,17 @@ def test_predict_cli_fills_a_stereo_pair_as_the_library_composes_it(tiny_checkpo
     assert failed.any() and not failed.all()  # an untrained network: the check fails somewhere, not everywhere
     np.testing.assert_allclose(written, expected, atol=1e-5)
     assert not np.allclose(written, d_left)
+
+
+def test_a_filled_batch_of_stereo_pairs_and_its_bad_inputs(predictor, monkeypatch):
+    left, right, later, _ = _images()
+    _, _, expected = _scene()
+    known = _filling(predictor, monkeypatch, left, right, later)
+    both = predictor.predict_pairs([left, left], [right, right], "stereo")
+    np.testing.assert_array_equal(both, np.stack([expected, expected]))
+    # one call of the two pairs and their right views, run two pairs at a time (one compiled shape)
+    assert known.calls == [4] and known.batches == [2]
+    with pytest.raises(ValueError, match="non-zero number"):
+        predictor.predict_pairs([], [], "stereo")
+    with pytest.raises(ValueError, match="same, non-zero number of first and second images, got 2 and 1"):
+        predictor.predict_pairs([left, left], [right], "stereo")
