@@ -97,7 +97,8 @@ def test_long_recipe_declares_its_stages_in_order():
     assert [(r.height, r.width) for r in runs] == [(64, 128), (128, 256), (256, 512)]
     assert [r.data.synthetic_scene for r in runs] == ["real_motion"] * 3
     assert [r.loss.photometric for r in runs] == ["ssim_l1", "census", "census"]
-    assert [r.loss.self_supervision for r in runs] == [0.0, 0.3, 0.3]
+    assert [r.loss.self_supervision for r in runs] == [0.0, 0.3, 1.0]
+    assert [r.loss.occlusion_fill for r in runs] == [0.0, 0.0, 3.0]
     assert [r.loss.stereo_occlusion for r in runs] == [False, True, True]
     assert runs[0].init_from == "" and runs[0].model.config["name"] == "pwc_lite"
     # fine-tuning: the last stage's settings from the shipped weights, on a folder, validating at step 0
@@ -109,8 +110,10 @@ def test_long_recipe_declares_its_stages_in_order():
         assert ft_cfg[key] == last[key], key
     # at the lr fine-tuning was measured at, with the last stage's moving average
     assert (ft_cfg.lr, ft_cfg.ema_decay, last.ema_decay) == (long.FINETUNE_LR, 0.99, 0.99)
-    # ... and the loss of the last stage, but the stereo pairs unmasked, as the shipped weights were trained
-    assert ft_cfg.loss.to_dict() == dict(last.loss.to_dict(), stereo_occlusion=False)
+    # ... and the loss of the last stage as the shipped weights were trained: stereo pairs unmasked,
+    # self-supervision 0.3, no fill term
+    assert ft_cfg.loss.to_dict() == dict(last.loss.to_dict(), stereo_occlusion=False, self_supervision=0.3,
+                                         occlusion_fill=0.0)
     assert ft_cfg.data.synthetic_scene == last.data.synthetic_scene
     # the legacy chain: each stage keeps what the stages before it set
     legacy = long.get_config("legacy")

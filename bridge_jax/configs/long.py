@@ -22,7 +22,12 @@ Stages (`STAGES`; each starts from the previous stage's final params with fresh 
 3. `hires`: 350 steps of the same at 256x512, so that one working pixel is 1-2 input pixels of a photograph (fine
    detail, object edges, sub-pixel shifts the smaller stages never saw), at lr 2.5e-4 halved at steps 180 and 315,
    with the params' moving average (`ema_decay` 0.99, about the last 100 steps) as the stage's model: at this lr
-   the average beat the last step's params on nearly every real-image check.
+   the average beat the last step's params on nearly every real-image check. Two terms weigh more here than in
+   `main`: self-supervision (1.0), the only teacher of the strip along the left edge that the right camera does
+   not see, and the background fill of stereo pixels the occlusion check distrusts (`loss.occlusion_fill` 3.0),
+   which pulls the disparity of background hidden in the right view towards its row's farther neighbour
+   (candidate NF3 of `long_recipe.md`: with both, the network alone beat the shipped `long` on every real-image
+   check but Motorcycle).
 
 The same steps at half the last stage's lr, without the average and without the stereo mask (candidate J) took
 1 h 56 min on a 2-core Intel Xeon VM (2026-12-06); neither the average nor the mask adds measurable step time (the
@@ -32,8 +37,8 @@ tried, and what each bought: `experiments/results/long_recipe.md`.
 Arguments: `short` = every stage at toy scale (4 steps each at 64x128) for tests and smoke runs;
 `finetune` = one stage with the last stage's settings from the shipped `long` weights, on your own stereo video
 (`data.source=folder`; set `data.data_dir` and, to see whether it helps, `data.val_dir`), validating before its
-first step, at half the lr the shipped weights' own last stage had (`FINETUNE_LR`), with the stereo pairs unmasked
-as the shipped weights were trained, and with the last stage's moving average as the model (measured in
+first step, at half the lr the shipped weights' own last stage had (`FINETUNE_LR`), with the loss the shipped weights
+were trained with (stereo pairs unmasked, self-supervision 0.3, no fill term), and with the last stage's moving average as the model (measured in
 `experiments/results/finetune_video_ema.md` and `finetune_video_ema_half_lr.md`: each of the two changes improved
 the held-out numbers); `legacy` = the five hand-chained stages the `long` shipped
 until 2026-12-04 came from, as one recipe from random initialisation (about 5x the compute of the recipe above;
@@ -65,7 +70,8 @@ STAGES = (
     ("hires", {
         "height": 256, "width": 512, "lr": 2.5e-4, "ema_decay": 0.99,
         "data.synthetic_scene": "real_motion", "data.augment_shift": 0.08,
-        "loss.photometric": "census", "loss.self_supervision": 0.3, "loss.stereo_occlusion": True,
+        "loss.photometric": "census", "loss.self_supervision": 1.0, "loss.stereo_occlusion": True,
+        "loss.occlusion_fill": 3.0,
         "loop.num_train_steps": 350, "loop.steps_per_epoch": 45,  # halved at 180 and 315
         "loop.checkpoint_every": 125, "loop.eval_every": 350, "loop.image_every": 350, "eval.batch": 4,
     }),
@@ -134,7 +140,10 @@ def finetune_stage() -> tuple[str, dict]:
     user's own stereo video, validating before its first step."""
     name, last = STAGES[-1]
     settings = dict(last, **{
-        "init_from": "long", "data.source": "folder", "lr": FINETUNE_LR, "loss.stereo_occlusion": False,
+        "init_from": "long", "data.source": "folder", "lr": FINETUNE_LR,
+        # the loss the shipped weights' last stage ran (and fine-tuning was measured with): stereo pairs unmasked,
+        # self-supervision 0.3, no fill term
+        "loss.stereo_occlusion": False, "loss.self_supervision": 0.3, "loss.occlusion_fill": 0.0,
         "loop.num_train_steps": FINETUNE_STEPS,
         "loop.steps_per_epoch": FINETUNE_STEPS, "loop.checkpoint_every": 50, "loop.eval_every": 50,
         "loop.image_every": 50, "loop.eval_at_start": True})
