@@ -279,22 +279,19 @@ class Predictor:
         (`fill_stereo`); its confidence and occlusion are those of the check of the map before the fill (the
         filled pixels are the ones the check distrusted)."""
         jobs = [(check_task(task), a, b) for task, a, b in jobs]
-        # the reverse pairs the fill needs (run with this predictor's own stages), in the forward pairs' batches
-        fill = self.fill_jobs(jobs)
+        n, fill = len(jobs), self.fill_jobs(jobs)
+        # reverse pairs run with this predictor's own stages, in the forward pairs' batches: every job's when the
+        # check runs those stages too (shared by the check and the fill), else those the fill needs
+        shared = confidence and self._check_record() == self.test_time
+        reversed_jobs = jobs if shared else [jobs[i] for i in fill]
+        maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in reversed_jobs], batch)
+        forward, reverse = maps[:n], maps[n:]
+        fill_reverse = [reverse[i] for i in fill] if shared else reverse
         if not confidence:
-            maps = self.working_maps(jobs + [checks.reverse_job(*jobs[i]) for i in fill], batch)
-            out = [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, maps)]
-            return self.fill_stereo(jobs, out, maps[len(jobs):])
-        n = len(jobs)
-        if self._check_record() == self.test_time:
-            maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in jobs], batch)  # shared batches
-            rows = self.checked_predictions(jobs, maps[:n], maps[n:])
-            reverse = [maps[n + i] for i in fill]
-        else:
-            maps = self.working_maps(jobs + [checks.reverse_job(*jobs[i]) for i in fill], batch)
-            rows = self.checked_predictions(jobs, maps[:n], self.backward_maps(jobs, batch))
-            reverse = maps[n:]
-        filled = self.fill_stereo(jobs, [r[0] for r in rows], reverse)
+            out = [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, forward)]
+            return self.fill_stereo(jobs, out, fill_reverse)
+        rows = self.checked_predictions(jobs, forward, reverse if shared else self.backward_maps(jobs, batch))
+        filled = self.fill_stereo(jobs, [r[0] for r in rows], fill_reverse)
         return [(value, conf, occ) for value, (_, conf, occ) in zip(filled, rows)]
 
     def fill_jobs(self, jobs: Sequence[tuple[str, Any, Any]]) -> list[int]:

@@ -111,7 +111,7 @@ def main(argv=None) -> int:
                         "per model: the mirrored pair)")
     p.add_argument("--out", default=None, help="JSON file for every number")
     args = p.parse_args(argv)
-    from bridge_jax import inference, testtime
+    from bridge_jax import confidence, inference, testtime
     from bridge_jax.bench import timing
     from bridge_jax.eval import real_checks
     moto = real_checks.motorcycle()
@@ -128,8 +128,8 @@ def main(argv=None) -> int:
             if args.left_right:
                 # the mirrored pair (flipped right view as the left one) is a left -> right pair whose
                 # disparity, flipped back, is the right view's
-                mirrored = pred.predict_pair(moto["right"][:, ::-1].copy(), moto["left"][:, ::-1].copy(), "stereo")
-                fails = left_right_flags(d, np.asarray(mirrored, np.float64)[:, ::-1])
+                mirrored = pred.predict([confidence.reverse_job("stereo", moto["left"], moto["right"])])[0]
+                fails = left_right_flags(d, np.asarray(confidence.right_view_disparity(mirrored), np.float64))
                 bad = metrics.outliers(metrics.endpoint_error(d, gt), np.abs(gt))
                 for name, mask in masks.items():
                     results[label][name]["fails_left_right"] = 100.0 * float(fails[mask].mean())
