@@ -16,7 +16,9 @@ themselves can correct, with the same photometric criterion the network was trai
    local-global energy: windowed Lucas-Kanade data terms where the images have texture, an edge-aware robust
    smoothness term everywhere, minimised by a few warps of red-black SOR. Where the images say little (sky,
    walls, pixels whose match leaves `b`) the map takes its neighbours' motion; a motion boundary on an image
-   edge stays sharp.
+   edge stays sharp. It samples `b` by cubic convolution (`geometry.warp_cubic`): bilinear sampling blurs
+   by an amount that depends on the fractional part of the position, and a fit that compares blurred and
+   unblurred windows is drawn towards whole-pixel motion.
 
 `polish_maps` runs both twice (`PolishConfig.rounds`): the second round's candidates come from a map that the first
 made right on wider areas. Both steps compare locally normalised grey images (zero mean, unit contrast over a
@@ -39,6 +41,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
+
+
+INTERPOLATIONS = ("cubic", "bilinear")
+"""How the polish samples `b` (`PolishConfig.interpolation`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +94,12 @@ class PolishConfig:
     data_prior: float = 1e-3
     """Added to the diagonal of the windowed data term: the 2x2 systems stay well posed without texture or
     smoothness."""
+    interpolation: str = "cubic"
+    """How `variational_fit` samples `b` at the map's positions: "cubic" = Keys' cubic convolution
+    (`geometry.warp_cubic`); "bilinear" = `geometry.warp`, the polish until 2026-12-06, whose blur varies with the
+    fractional part of the position and so draws a sub-pixel fit towards whole-pixel motion. The candidate
+    selection compares values 4-24 px apart, where that bias does not matter, and keeps the bilinear warp (4
+    taps a pixel against 16, for each of its 33 warps a round)."""
 
     def __post_init__(self):
         object.__setattr__(self, "candidate_distances", tuple(int(d) for d in self.candidate_distances))
@@ -97,6 +109,8 @@ class PolishConfig:
         if not self.select_softness >= 0:
             raise ValueError(f"PolishConfig: select_softness must be >= 0 (0 = the cheapest candidate), got "
                              f"{self.select_softness!r}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"PolishConfig: interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
 
 
 DEFAULT_CONFIG = PolishConfig()
@@ -153,14 +167,18 @@ def gradients(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     return 0.5 * (px[:, :, 2:] - px[:, :, :-2]), 0.5 * (py[:, 2:] - py[:, :-2])
 
 
-def _warp_grey(image: jax.Array, maps: jax.Array) -> jax.Array:
-    """`(N, H, W)` image sampled at x + map (bilinear, border clamp; `geometry.warp`)."""
-    return geometry.warp(image[..., None], maps)[..., 0]
+def _warp_grey(image: jax.Array, maps: jax.Array, interpolation: str = "bilinear") -> jax.Array:
+    """`(N, H, W)` image sampled at x + map, border clamped (`geometry.warp_cubic` or the bilinear `geometry.warp`)."""
+    warp = geometry.warp_cubic if interpolation == "cubic" else geometry.warp
+    return warp(image[..., None], maps)[..., 0]
 
 
-def warped_normalised(grey_b: jax.Array, maps: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> jax.Array:
-    """`(N, H, W)` grey image `b` warped into `a`'s frame by `maps`, then normalised there (`normalise_locally`)."""
-    return normalise_locally(_warp_grey(grey_b, maps), config.normalise_radius, config.contrast_floor)
+def warped_normalised(grey_b: jax.Array, maps: jax.Array, config: PolishConfig = DEFAULT_CONFIG,
+                      interpolation: str = "bilinear") -> jax.Array:
+    """`(N, H, W)` grey image `b` warped into `a`'s frame by `maps` (`interpolation`: "bilinear" or "cubic"),
+    then normalised there (`normalise_locally`)."""
+    return normalise_locally(_warp_grey(grey_b, maps, interpolation), config.normalise_radius,
+                             config.contrast_floor)
 
 
 # ------------------------------------------------------------------------------ candidate selection
@@ -310,7 +328,7 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     win = lambda x: gaussian_filter(x, config.variational_sigma)
 
     def warp_iteration(_, d0):
-        warped = warped_normalised(grey_b, d0, config)
+        warped = warped_normalised(grey_b, d0, config, config.interpolation)
         it = warped - norm_a
         bx, by = gradients(warped)
         gx, gy = 0.5 * (ax + bx), 0.5 * (ay + by)

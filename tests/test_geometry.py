@@ -80,6 +80,55 @@ def test_warp_bad_shapes():
         geometry.warp(jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, 8, 4, 2)))
 
 
+def test_cubic_warp_matches_opencv_inter_cubic(rng):
+    """With OpenCV's kernel parameter (a = -0.75) the cubic warp is cv2.remap(INTER_CUBIC, BORDER_REPLICATE), an
+    independent implementation, at positions on OpenCV's 1/32 px interpolation grid (where its table is exact)
+    and inside the image (outside it the two clamp differently: ours reads the border pixel itself)."""
+    import cv2
+    h, w = 23, 31
+    img = rng.random((h, w, 3)).astype(np.float32)
+    d = (rng.integers(-96, 97, (h, w, 2)) / 32.0).astype(np.float32)
+    ys, xs = np.mgrid[:h, :w].astype(np.float32)
+    mx, my = xs + d[..., 0], ys + d[..., 1]
+    ref = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    out = np.asarray(geometry.warp_cubic(jnp.asarray(img)[None], jnp.asarray(d)[None], a=-0.75))[0]
+    inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    assert inside.mean() > 0.7
+    np.testing.assert_allclose(out[inside], ref[inside], atol=2e-5)
+
+
+def test_cubic_warp_reproduces_quadratics_and_whole_pixel_shifts(rng):
+    """Keys' kernel at a = -0.5 reproduces a quadratic exactly (derived by hand: its weights' first and second
+    moments about the sample point are 0 and match a quadratic's Taylor terms), so an image q(x, y) sampled
+    anywhere at least 1 px inside the border gives q there; a whole-pixel shift is a plain copy; a position
+    outside the image reads the border pixel, as the bilinear warp does."""
+    h, w = 20, 26
+    ys, xs = np.mgrid[:h, :w].astype(np.float64)
+    q = lambda x, y: 0.3 + 0.02 * x - 0.01 * y + 0.004 * x * x - 0.003 * x * y + 0.002 * y * y  # noqa: E731
+    img = q(xs, ys).astype(np.float32)[..., None]
+    d = rng.uniform(-2.0, 2.0, (h, w, 2)).astype(np.float32)
+    out = np.asarray(geometry.warp_cubic(jnp.asarray(img)[None], jnp.asarray(d)[None]))[0, ..., 0]
+    px, py = xs + d[..., 0], ys + d[..., 1]
+    inner = (px >= 1) & (px <= w - 2) & (py >= 1) & (py <= h - 2)
+    np.testing.assert_allclose(out[inner], q(px, py)[inner], atol=1e-5)
+    # bilinear sampling does not: its error on the same quadratic is the curvature times t(1 - t) / 2
+    lin = np.asarray(geometry.warp(jnp.asarray(img)[None], jnp.asarray(d)[None]))[0, ..., 0]
+    assert np.abs(lin - q(px, py))[inner].max() > 1e-3
+
+    shift = np.zeros((h, w, 2), np.float32)
+    shift[..., 0], shift[..., 1] = 2.0, -1.0
+    img3 = rng.random((h, w, 2)).astype(np.float32)
+    out = np.asarray(geometry.warp_cubic(jnp.asarray(img3)[None], jnp.asarray(shift)[None]))[0]
+    np.testing.assert_allclose(out[1:, :w - 2], img3[:h - 1, 2:], atol=1e-6)
+
+    far = np.zeros((h, w, 2), np.float32)
+    far[..., 0] = -40.0  # every match left of the image: column 0 of the same row
+    out = np.asarray(geometry.warp_cubic(jnp.asarray(img3)[None], jnp.asarray(far)[None]))[0]
+    np.testing.assert_allclose(out, np.broadcast_to(img3[:, :1], img3.shape), atol=1e-6)
+    with pytest.raises(ValueError, match="disp_px"):
+        geometry.warp_cubic(jnp.zeros((1, 4, 5, 1)), jnp.zeros((1, 4, 6, 2)))
+
+
 def test_frac_px_conversion():
     frac = jnp.ones((2, 4, 8, 2)) * jnp.array([0.25, -0.5])
     px = geometry.frac_to_px(frac)

@@ -248,8 +248,9 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     want = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain.run_network(pairs, rows)), jnp.asarray([1.0, 0.0]))
     got = polished.run_network(pairs, rows)
     # 200 SOR sweeps with robust weights on random images carry float reassociation between the fused and the
-    # unfused computation to a few thousandths of a pixel on a few pixels; on average they agree to 1e-5
-    np.testing.assert_allclose(got, np.asarray(want), atol=5e-3)
+    # unfused computation to about a hundredth of a pixel on a few pixels (3 of 32,768 above 5e-3 with the cubic
+    # sampling); on average they agree to 1e-5
+    np.testing.assert_allclose(got, np.asarray(want), atol=2e-2)
     assert np.abs(got - np.asarray(want)).mean() < 1e-5
     assert np.abs(got - plain.run_network(pairs, rows)).max() > 1e-3  # the polish changed the maps
     assert np.all(got[1, ..., 1] == 0.0)  # the stereo row stays horizontal
@@ -264,7 +265,9 @@ def test_predictor_polishes_its_final_maps_and_the_export_follows(rng, tmp_path)
     plain_fast = inference.Predictor(*pwc, size=size, test_time=TestTime(refine=1), model_cfg=PWC, compile_mode="fast")
     want_fast = polish.polish_maps(jnp.asarray(pairs), jnp.asarray(plain_fast.run_network(pairs, rows)),
                                    jnp.asarray([1.0, 0.0]))
-    np.testing.assert_allclose(fast.run_network(pairs, rows), np.asarray(want_fast), atol=5e-3)
+    got_fast = fast.run_network(pairs, rows)
+    np.testing.assert_allclose(got_fast, np.asarray(want_fast), atol=2e-2)
+    assert np.abs(got_fast - np.asarray(want_fast)).mean() < 5e-5  # random maps of up to 30 px here
     one = inference.Predictor(*pwc, size=size, test_time=TestTime(polish="photometric"), model_cfg=PWC)
     loaded = export.load_exported(export.serialize_to_file(export.export_network(one, batch=1), tmp_path / "p.hlo"))
     px, _ = loaded.call(pairs[:1])
