@@ -44,7 +44,7 @@ from bridge_jax import geometry
 
 
 INTERPOLATIONS = ("cubic", "bilinear")
-"""How the polish samples `b` (`PolishConfig.interpolation`)."""
+"""How the variational fit may sample `b` (`PolishConfig.interpolation`)."""
 
 
 @dataclasses.dataclass(frozen=True)

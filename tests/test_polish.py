@@ -80,6 +80,22 @@ def test_polish_recovers_a_sub_pixel_translation(stereo):
         assert np.all(out[..., 1] == 0.0)
 
 
+def test_cubic_sampling_removes_the_half_pixel_bias_of_bilinear():
+    """At a half-pixel translation bilinear sampling blurs `b` the most (its weights are 1/2, 1/2), and a fit
+    that compares a sharp window of `a` with that blurred one misreads the motion; cubic convolution keeps the
+    detail (`PolishConfig.interpolation`). Measured on this texture: mean error 0.012 px bilinear, 0.005 cubic."""
+    pairs = jnp.asarray(_translated_pair(0.5, 0.5))
+    errors = {}
+    for interpolation in polish.INTERPOLATIONS:
+        out = np.asarray(polish.polish_maps(pairs, jnp.zeros((1, H, W, 2)), jnp.asarray([1.0]),
+                                            polish.PolishConfig(interpolation=interpolation)))[0]
+        errors[interpolation] = float(np.abs(out[10:-10, 10:-10] - np.float32([0.5, 0.5])).mean())
+    assert errors["cubic"] < 0.008 and errors["cubic"] < 0.6 * errors["bilinear"], errors
+    assert polish.DEFAULT_CONFIG.interpolation == "cubic"
+    with pytest.raises(ValueError, match="interpolation"):
+        polish.PolishConfig(interpolation="lanczos")
+
+
 def _refine(pairs, maps, flow_rows=(1.0,)):
     grey_a, grey_b = pairs[..., :3].mean(-1), pairs[..., 3:].mean(-1)
     return np.asarray(polish.variational_fit(polish.normalise_locally(grey_a), grey_a, grey_b,
