@@ -108,7 +108,7 @@ def warp_cubic(image, disp_px, a: float = CUBIC_A):
     Bilinear sampling (`warp`) low-pass filters by an amount that depends on the fractional part of the position
     (none at whole pixels, most at half pixels), which draws sub-pixel estimates made by comparing warped images
     towards whole-pixel motion; the cubic kernel keeps far more of the image's detail at every offset. The
-    training losses keep the paper's bilinear `warp`; the test-time polish uses this one.
+    training losses keep the paper's bilinear `warp`; the test-time polish's variational fit uses this one.
 
     Args:
       image: (..., H, W, C) float.
