@@ -42,6 +42,21 @@ def _warp_single(image, disp_px):
     return jax.vmap(sample, in_axes=-1, out_axes=-1)(image)
 
 
+def _warp_batched(single, image, disp_px):
+    """`single` ((H, W, C), (H, W, 2)) -> (H, W, C) applied over the leading dims of `image (..., H, W, C)` and
+    `disp_px (..., H, W, 2)`, after checking that their shapes agree (ValueError naming the mismatch)."""
+    if image.ndim < 3:
+        raise ValueError(f"image must have shape (..., H, W, C), got {tuple(image.shape)}")
+    _check_map("disp_px", disp_px, image.shape[-3:-1])
+    if image.shape[:-3] != disp_px.shape[:-3]:
+        raise ValueError(f"image leading dims {image.shape[:-3]} differ from disp_px leading dims {disp_px.shape[:-3]}")
+    lead = image.shape[:-3]
+    img = image.reshape((-1,) + image.shape[-3:])
+    d = disp_px.reshape((-1,) + disp_px.shape[-3:]).astype(img.dtype)
+    out = jax.vmap(single)(img, d)
+    return out.reshape(lead + out.shape[1:])
+
+
 def warp(image, disp_px):
     """Backward-warp `image` by a pixel correspondence map.
 
@@ -53,16 +68,7 @@ def warp(image, disp_px):
     Returns:
       (..., H, W, C), the second image brought into the frame of the first.
     """
-    if image.ndim < 3:
-        raise ValueError(f"image must have shape (..., H, W, C), got {tuple(image.shape)}")
-    _check_map("disp_px", disp_px, image.shape[-3:-1])
-    if image.shape[:-3] != disp_px.shape[:-3]:
-        raise ValueError(f"image leading dims {image.shape[:-3]} differ from disp_px leading dims {disp_px.shape[:-3]}")
-    lead = image.shape[:-3]
-    img = image.reshape((-1,) + image.shape[-3:])
-    d = disp_px.reshape((-1,) + disp_px.shape[-3:]).astype(img.dtype)
-    out = jax.vmap(_warp_single)(img, d)
-    return out.reshape(lead + out.shape[1:])
+    return _warp_batched(_warp_single, image, disp_px)
 
 
 CUBIC_A = -0.5
@@ -117,16 +123,7 @@ def warp_cubic(image, disp_px, a: float = CUBIC_A):
     Returns:
       (..., H, W, C), the second image brought into the frame of the first.
     """
-    if image.ndim < 3:
-        raise ValueError(f"image must have shape (..., H, W, C), got {tuple(image.shape)}")
-    _check_map("disp_px", disp_px, image.shape[-3:-1])
-    if image.shape[:-3] != disp_px.shape[:-3]:
-        raise ValueError(f"image leading dims {image.shape[:-3]} differ from disp_px leading dims {disp_px.shape[:-3]}")
-    lead = image.shape[:-3]
-    img = image.reshape((-1,) + image.shape[-3:])
-    d = disp_px.reshape((-1,) + disp_px.shape[-3:]).astype(img.dtype)
-    out = jax.vmap(lambda i, m: _warp_cubic_single(i, m, a))(img, d)
-    return out.reshape(lead + out.shape[1:])
+    return _warp_batched(lambda i, m: _warp_cubic_single(i, m, a), image, disp_px)
 
 
 # --------------------------------------------------------------------------------- unit conversion
