@@ -214,15 +214,11 @@ def left_right_difference(d_left: np.ndarray, d_right: np.ndarray) -> tuple[np.n
     if d_left.ndim != 2 or d_right.shape != d_left.shape:
         raise ValueError(f"left_right_difference: expected two (H, W) disparities of one shape, got "
                          f"{d_left.shape} and {d_right.shape}")
-    h, w = d_left.shape
-    x = np.arange(w, dtype=np.float32)[None, :] - d_left
-    out_of_view = (x < 0) | (x > w - 1)
-    x = np.clip(x, 0, w - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), w - 1)
-    x1 = np.minimum(x0 + 1, w - 1)
-    frac = x - x0
-    rows = np.arange(h)[:, None]
-    at_match = d_right[rows, x0] * (1 - frac) + d_right[rows, x1] * frac
+    x = np.arange(d_left.shape[1], dtype=np.float32)[None, :] - d_left
+    out_of_view = (x < 0) | (x > d_left.shape[1] - 1)
+    # d_R read at (x - d_L, y): the bilinear warp with border clamp, linear along the row for a horizontal map
+    to_match = np.stack([-d_left, np.zeros_like(d_left)], -1)
+    at_match = np.asarray(geometry.warp(d_right[None, :, :, None], to_match[None]))[0, ..., 0]
     return np.abs(d_left - at_match).astype(np.float32), out_of_view
 
 
