@@ -14,11 +14,11 @@ themselves can correct, with the same photometric criterion the network was trai
    step seeded by the network.
 2. **Sub-pixel noise, textureless regions, the image border** (`variational_fit`). A combined
    local-global energy: windowed Lucas-Kanade data terms where the images have texture, an edge-aware robust
-   smoothness term everywhere, minimised by a few warps of red-black SOR. Where the images say little (sky,
-   walls, pixels whose match leaves `b`) the map takes its neighbours' motion; a motion boundary on an image
-   edge stays sharp. It samples `b` by cubic convolution (`geometry.warp_cubic`): bilinear sampling blurs
-   by an amount that depends on the fractional part of the position, and a fit that compares blurred and
-   unblurred windows is drawn towards whole-pixel motion.
+   smoothness term everywhere, minimised by warps of red-black SOR (20 on flow maps, 5 on stereo maps). Where
+   the images say little (sky, walls, pixels whose match leaves `b`) the map takes its neighbours' motion; a
+   motion boundary on an image edge stays sharp. It samples `b` by cubic convolution (`geometry.warp_cubic`):
+   bilinear sampling blurs by an amount that depends on the fractional part of the position, and a fit that
+   compares blurred and unblurred windows is drawn towards whole-pixel motion.
 
 `polish_maps` runs both twice (`PolishConfig.rounds`): the second round's candidates come from a map that the first
 made right on wider areas. Both steps compare locally normalised grey images (zero mean, unit contrast over a
@@ -85,8 +85,15 @@ class PolishConfig:
     so a motion boundary the earlier steps made sharp stays sharp."""
     variational_sigma: float = 1.5
     """Standard deviation of the Gaussian window of the data term (the "local" half of the CLG energy)."""
-    variational_warps: int = 5
-    """Outer iterations of `variational_fit`: b re-warped, the energy re-linearised, weights recomputed."""
+    variational_warps: int = 20
+    """Outer iterations of `variational_fit` on flow rows: b re-warped, the energy re-linearised, the robust
+    weights recomputed. Each is one step of iteratively reweighted least squares, and a smooth error over a
+    wide area (a zoom, a slow drift of the network's map) takes many of them to leave: 5 left the maps of
+    whole-image motion short of the energy's minimum."""
+    variational_warps_stereo: int = 5
+    """The same for rectified stereo rows, fewer. Each warp may move a pixel by up to 2 px (the linearisation's
+    range), so more warps also let pixels that have no true match (background the right view cannot see) travel
+    further along their row; on stereo maps more warps did not pay (`experiments/results/real_images.md`)."""
     sor_sweeps: int = 20
     """Red-black successive over-relaxation sweeps per outer iteration."""
     sor_omega: float = 1.9
@@ -104,7 +111,8 @@ class PolishConfig:
     def __post_init__(self):
         object.__setattr__(self, "candidate_distances", tuple(int(d) for d in self.candidate_distances))
         if self.rounds < 0 or min((self.normalise_radius, self.cost_radius, self.variational_warps,
-                                   self.sor_sweeps), default=0) < 0 or not self.candidate_distances:
+                                   self.variational_warps_stereo, self.sor_sweeps), default=0) < 0 \
+                or not self.candidate_distances:
             raise ValueError(f"PolishConfig: counts and radii must be >= 0 and candidate_distances non-empty: {self}")
         if not self.select_softness >= 0:
             raise ValueError(f"PolishConfig: select_softness must be >= 0 (0 = the cheapest candidate), got "
@@ -296,7 +304,8 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     of Lucas-Kanade on the locally normalised images, rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly
     (occlusions), c_xy are the `edge_weights` of `a`, and psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust
     smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
-    up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations re-warps `b`,
+    up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations
+    (`config.variational_warps_stereo` on stereo rows; a row past its count keeps its map) re-warps `b`,
     recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps (`config.sor_omega`) on the 2x2
     (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight`, eps = `config.data_eps`, eps_s =
     `config.smooth_eps`.
@@ -327,7 +336,10 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     ys = jnp.arange(h, dtype=jnp.float32)[None, :, None]
     win = lambda x: gaussian_filter(x, config.variational_sigma)
 
-    def warp_iteration(_, d0):
+    # each row's own number of outer iterations: the loop runs the larger, and a row past its count keeps its map
+    warps = jnp.where(flow_rows > 0.5, config.variational_warps, config.variational_warps_stereo)[:, None, None, None]
+
+    def warp_iteration(i, d0):
         warped = warped_normalised(grey_b, d0, config, config.interpolation)
         it = warped - norm_a
         bx, by = gradients(warped)
@@ -362,9 +374,20 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
             return d
 
         d = jax.lax.fori_loop(0, config.sor_sweeps, sweep, jnp.zeros_like(d0))
-        return d0 + jnp.clip(d, -2.0, 2.0) * mask  # the linearisation holds about a pixel or two
+        step = jnp.clip(d, -2.0, 2.0) * mask  # the linearisation holds about a pixel or two
+        return d0 + jnp.where(i < warps, step, 0.0)
 
-    return jax.lax.fori_loop(0, config.variational_warps, warp_iteration, maps * mask)
+    rounds = max(config.variational_warps, config.variational_warps_stereo)
+    return jax.lax.fori_loop(0, rounds, warp_iteration, maps * mask)
+
+
+def config_for_rows(config: PolishConfig, flow_rows) -> PolishConfig:
+    """`config` for a batch whose rows' kinds are known when it is compiled (`flow_rows`: host values, 1 = flow,
+    0 = stereo): a batch of stereo rows only runs `variational_warps_stereo` outer iterations in all, not
+    `variational_warps` of which every row would discard the rest. The same maps either way."""
+    if np.any(np.asarray(flow_rows) > 0.5):
+        return config
+    return dataclasses.replace(config, variational_warps=config.variational_warps_stereo)
 
 
 def grey_images(pairs: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -27,7 +27,7 @@ from bridge_jax import checkpointing, compile_cache, executable_cache, memory, m
 from bridge_jax import confidence as checks
 from bridge_jax.cycle import check_task
 from bridge_jax.network import Network, check_separate_params, compute_dtype
-from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig
+from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, config_for_rows
 from bridge_jax.resizing import (DEFAULT_HEIGHT, DEFAULT_WIDTH, DEFAULT_WORKING_SIZE, NATIVE, NATIVE_MAX_PIXELS,
                                  REDUCED_READ_NOTICE, TRAINED, WorkingSize, flow_to_input_resolution,
                                  input_size, map_to_input_resolution, minimum_input_size, native_working_size,
@@ -180,8 +180,9 @@ class Predictor:
         """The polish program (stage 3) run on `maps`: compiled at full optimisation whatever `compile_mode`
         (`stages.POLISH_APART`), kept per shape, test-time record and `PolishConfig` (`_kept_program`)."""
         test_time = self.test_time.photometric_part  # the fill runs on the host (`fill_stereo`)
-        args = (pairs, maps, flow_rows, test_time, self.polish_config)
-        key = ("polish", tuple(pairs.shape), str(pairs.dtype), test_time, self.polish_config)
+        config = config_for_rows(self.polish_config, flow_rows)
+        args = (pairs, maps, flow_rows, test_time, config)
+        key = ("polish", tuple(pairs.shape), str(pairs.dtype), test_time, config)
         return self._kept_program(key, _POLISH_JIT, args, {"program": "polish"}, _POLISH_STATIC)(*args)
 
     def lower(self, batch: int, task: str = "flow"):

@@ -29,7 +29,7 @@ import numpy as np
 from bridge_jax import geometry
 from bridge_jax.cycle import check_task
 from bridge_jax.network import Network
-from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, component_mask, polish_maps
+from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, component_mask, config_for_rows, polish_maps
 from bridge_jax.testtime import TestTime
 
 POLISH_APART = True
@@ -187,7 +187,8 @@ def inference_function(predictor, batch: int = 1, task: str = "flow"):
             return maps["px"][0], maps["frac"][0]
         network_program = lambda x: network_maps(predictor.net, params, x, tasks, rows_flow,
                                                         test_time.network_part)
-        polish_program = lambda x, maps, flows: polish_stage(x, maps, flows, test_time, predictor.polish_config)
+        config = config_for_rows(predictor.polish_config, flow_rows([task] * batch))
+        polish_program = lambda x, maps, flows: polish_stage(x, maps, flows, test_time, config)
         px = predicted_maps(pairs, rows_flow, test_time, network_program, polish_program)
         return px, px / jnp.asarray([predictor.width, predictor.height], px.dtype)
 
