@@ -377,8 +377,8 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
         step = jnp.clip(d, -2.0, 2.0) * mask  # the linearisation holds about a pixel or two
         return d0 + jnp.where(i < warps, step, 0.0)
 
-    rounds = max(config.variational_warps, config.variational_warps_stereo)
-    return jax.lax.fori_loop(0, rounds, warp_iteration, maps * mask)
+    iterations = max(config.variational_warps, config.variational_warps_stereo)
+    return jax.lax.fori_loop(0, iterations, warp_iteration, maps * mask)
 
 
 def config_for_rows(config: PolishConfig, flow_rows) -> PolishConfig:
