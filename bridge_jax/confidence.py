@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bridge_jax import geometry
-from bridge_jax.resizing import _resize, map_to_input_resolution, resize_weights_align_corners
+from bridge_jax.resizing import _resize, map_to_input_resolution, map_to_size, resize_weights_align_corners
 from bridge_jax.testtime import FILL_MAX_DIFFERENCE, TestTime
 
 ALPHA1 = 0.01
@@ -160,9 +160,11 @@ def checked_map(task: str, forward: np.ndarray, reverse_map: np.ndarray, height:
 
     Args:
       task: "flow" or "stereo".
-      forward: the pair's working-size map `(H, W, 2)` (a stereo map's vertical component is dropped: a stereo
-        match stays on its row).
-      reverse_map: the working-size map of its `reverse_job` (`backward_map` turns it into D').
+      forward: the pair's map `(H, W, 2)` at the size its last stage ran at (`Predictor.stage_maps`: the working
+        size, or the input size where the polish ran there; a stereo map's vertical component is dropped: a
+        stereo match stays on its row).
+      reverse_map: the map of its `reverse_job` (`backward_map` turns it into D'), brought to the forward map's
+        size first when it has another (`resizing.map_to_size`).
       threshold: the occlusion threshold (`OCCLUSION_THRESHOLD` of the check's mode).
       radius, edge_weight: the edge term's window and weight.
     Returns:
@@ -171,6 +173,10 @@ def checked_map(task: str, forward: np.ndarray, reverse_map: np.ndarray, height:
     """
     if task == "stereo":
         forward = forward * np.array([1.0, 0.0], np.float32)
+    if reverse_map.shape[:2] != forward.shape[:2]:
+        # a map polished at the input size against a backward map of the working size (check mode "network"):
+        # the check runs at the forward map's size, the prediction's own
+        reverse_map = map_to_size(task, reverse_map, *forward.shape[:2])
     score, out_of_view = consistency_score(forward[None], backward_map(task, reverse_map)[None])
     edge = edge_score(forward[None], radius=radius)
     conf, occ = to_input_resolution(np.asarray(score[0]), np.asarray(out_of_view[0]), height, width,

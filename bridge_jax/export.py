@@ -22,7 +22,11 @@ program). The working size
 "frac0"), for onnxruntime, TensorRT or OpenCV's dnn module, which need no JAX (experiments/onnx_predict.py).
 
 Input resizing and mapping back to the original resolution are not part of the artifact (see
-`bridge_jax.inference.resize_images` / `flow_to_input_resolution` / `disparity_to_input_resolution`).
+`bridge_jax.inference.resize_images` / `flow_to_input_resolution` / `disparity_to_input_resolution`). So the
+artifact polishes its maps at its own input size, the working size, where `Predictor` polishes them at the
+images' own size after bringing them up (`polish.PolishConfig.resolution`): on inputs of another size its
+polished maps are those of `PolishConfig(resolution="working")`, and equal to the predictor's for inputs of the
+working size.
 """
 from __future__ import annotations
 

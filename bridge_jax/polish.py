@@ -1,4 +1,4 @@
-"""Test-time photometric polish: the network's map improved at the working resolution.
+"""Test-time photometric polish: the network's map improved against the images themselves.
 
 The network answers at a quarter of its working size, and its maps come up to full size by bilinear
 interpolation, smoothed by the training's smoothness prior. Two errors follow that a look at the images
@@ -45,12 +45,15 @@ from bridge_jax import geometry
 
 INTERPOLATIONS = ("cubic", "bilinear")
 """How the variational fit may sample `b` (`PolishConfig.interpolation`)."""
+RESOLUTIONS = ("input", "working")
+"""Where `Predictor` runs the polish (`PolishConfig.resolution`)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class PolishConfig:
     """The parameters of the photometric polish (`polish_maps`); hashable, so a compiled polish is kept per
-    config. Lengths are working pixels, grey levels are in [0, 1] (normalised ones where said)."""
+    config. Lengths are pixels of the images the polish runs on (`resolution`), grey levels are in [0, 1]
+    (normalised ones where said)."""
 
     rounds: int = 2
     """Rounds of (`select_candidates`, `variational_fit`) in `polish_maps`."""
@@ -74,8 +77,13 @@ class PolishConfig:
     acceptance threshold: the same answer wherever one candidate is clearly the cheapest, but continuous in the
     images and the map, so that a tiny change of the input (another runtime's rounding) cannot flip a pixel
     from one candidate to another."""
-    smoothness_weight: float = 2.0
-    """alpha of `variational_fit`: the weight of the smoothness term next to the windowed data term."""
+    smoothness_weight: float = 3.0
+    """alpha of `variational_fit` on flow rows: the weight of the smoothness term next to the windowed data
+    term."""
+    smoothness_weight_stereo: float = 2.0
+    """The same on rectified stereo rows. A disparity map has depth edges wherever a nearer surface starts, and a
+    stronger smoothness carries the nearer surface further over the background: at 4 instead of 2, Motorcycle's
+    D1 rose from 9.4 to 10.2 % while the photo flow improved (`experiments/results/real_images.md`)."""
     edge_scale: float = 0.05
     """Grey-level difference over which a neighbour's smoothness weight falls by e (`edge_weights`)."""
     data_eps: float = 0.1
@@ -107,6 +115,18 @@ class PolishConfig:
     fractional part of the position and so draws a sub-pixel fit towards whole-pixel motion. The candidate
     selection compares values 4-24 px apart, where that bias does not matter, and keeps the bilinear warp (4
     taps a pixel against 16, for each of its 33 warps a round)."""
+    resolution: str = "input"
+    """Where a `Predictor` runs the polish: "input" = on the images as given, after the network's map was brought
+    to their size (`Predictor.stage_maps`); "working" = on the images resized to the network's working size,
+    before the map is brought up (the polish until 2026-12-07). Resizing the images to a working size that is
+    not a whole fraction of theirs resamples them differently at every sub-pixel phase, so even an exact
+    whole-pixel motion no longer minimises the energy, and an edge the polish made sharp is blurred again when
+    the map is brought up. The polish itself is the same function either way; an exported artifact runs it at
+    its own input size, the working size (`bridge_jax.export`)."""
+    max_pixels: int = 1024 * 768
+    """With `resolution="input"`, inputs larger than this many pixels are polished at the working size instead:
+    the polish's memory and time grow with the pixels it runs on (the native working size's cap,
+    `resizing.NATIVE_MAX_PIXELS`)."""
 
     def __post_init__(self):
         object.__setattr__(self, "candidate_distances", tuple(int(d) for d in self.candidate_distances))
@@ -119,6 +139,17 @@ class PolishConfig:
                              f"{self.select_softness!r}")
         if self.interpolation not in INTERPOLATIONS:
             raise ValueError(f"PolishConfig: interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
+        if self.resolution not in RESOLUTIONS:
+            raise ValueError(f"PolishConfig: resolution must be one of {RESOLUTIONS}, got {self.resolution!r}")
+        if self.max_pixels < 1:
+            raise ValueError(f"PolishConfig: max_pixels must be >= 1, got {self.max_pixels!r}")
+
+    def size_for(self, working: tuple[int, int], full: tuple[int, int]) -> tuple[int, int]:
+        """(H, W) the polish runs at for an input of size `full` whose network ran at `working` (`resolution`,
+        `max_pixels`)."""
+        if self.resolution == "input" and full[0] * full[1] <= self.max_pixels:
+            return tuple(full)
+        return tuple(working)
 
 
 DEFAULT_CONFIG = PolishConfig()
@@ -307,7 +338,8 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations
     (`config.variational_warps_stereo` on stereo rows; a row past its count keeps its map) re-warps `b`,
     recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps (`config.sor_omega`) on the 2x2
-    (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight`, eps = `config.data_eps`, eps_s =
+    (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight` (`config.smoothness_weight_stereo`
+    on stereo rows), eps = `config.data_eps`, eps_s =
     `config.smooth_eps`.
 
     Where the earlier steps leave noise the smoothness term averages it with the neighbours' values, weighted by
@@ -324,8 +356,8 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     Returns:
       `(N, H, W, 2)` maps.
     """
-    alpha, omega, smooth_eps, data_eps = (config.smoothness_weight, config.sor_omega, config.smooth_eps,
-                                          config.data_eps)
+    omega, smooth_eps, data_eps = config.sor_omega, config.smooth_eps, config.data_eps
+    alpha = jnp.where(flow_rows > 0.5, config.smoothness_weight, config.smoothness_weight_stereo)[:, None, None]
     h, w = norm_a.shape[1:]
     flow_row = (flow_rows > 0.5)[:, None, None]
     mask = component_mask(flow_rows)
@@ -403,8 +435,10 @@ def polish_maps(pairs: jax.Array, maps: jax.Array, flow_rows: jax.Array,
     (the second round's candidates come from a map the first round made right on wider areas).
 
     Args:
-      pairs: `(N, H, W, 6)` = [image a, image b], RGB in [0, 1] at the working size.
-      maps: `(N, H, W, 2)` working-pixel maps a -> b (the network's, refined and averaged as asked).
+      pairs: `(N, H, W, 6)` = [image a, image b], RGB in [0, 1], at the size the polish runs at
+        (`PolishConfig.resolution`).
+      maps: `(N, H, W, 2)` pixel maps a -> b at that size (the network's, refined and averaged as asked, brought
+        to that size).
       flow_rows: `(N,)` 1.0 for flow rows, 0.0 for rectified stereo rows (their vertical component stays 0).
       config: the parameters (hashable: a static argument where jitted).
     Returns:

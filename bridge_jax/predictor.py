@@ -13,6 +13,7 @@ record; resizing runs in numpy, so new input sizes never recompile it. Parameter
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -30,8 +31,8 @@ from bridge_jax.network import Network, check_separate_params, compute_dtype
 from bridge_jax.polish import DEFAULT_CONFIG, PolishConfig, config_for_rows
 from bridge_jax.resizing import (DEFAULT_HEIGHT, DEFAULT_WIDTH, DEFAULT_WORKING_SIZE, NATIVE, NATIVE_MAX_PIXELS,
                                  REDUCED_READ_NOTICE, TRAINED, WorkingSize, flow_to_input_resolution,
-                                 input_size, map_to_input_resolution, minimum_input_size, native_working_size,
-                                 resize_images, to_rgb_float)
+                                 input_size, map_to_input_resolution, map_to_size, minimum_input_size,
+                                 native_working_size, resize_images, to_rgb_float)
 from bridge_jax.testtime import TestTime
 
 COMPILE_MODES = ("auto", "fast", "full")
@@ -141,14 +142,16 @@ class Predictor:
         other.params = params  # the shallow copy shares `_jits`: the compiled functions do not depend on the values
         return other
 
-    def forward(self, pairs: jax.Array, tasks: Sequence[str]) -> jax.Array:
+    def forward(self, pairs: jax.Array, tasks: Sequence[str], polish: bool = True) -> jax.Array:
         """The compiled stages on device arrays: `(N, H, W, 6)` -> `(N, H, W, 2)` working-size pixel maps (N a
-        multiple of the mesh size); `tasks` the task of each row ("flow" / "stereo")."""
+        multiple of the mesh size); `tasks` the task of each row ("flow" / "stereo"). `polish=False` leaves out
+        the polish (`stage_maps` then runs it at the input size)."""
         flows = stages.flow_rows(tasks)
         static = self.net.static_tasks([check_task(t) for t in tasks])
         args = (self.params, pairs, static, flows, self.test_time.network_part)
         polish_program = self._polish_program if stages.POLISH_APART else None
-        return stages.predicted_maps(pairs, flows, self.test_time, lambda x: self._network_program(args)(*args),
+        test_time = self.test_time if polish else self.test_time.network_part
+        return stages.predicted_maps(pairs, flows, test_time, lambda x: self._network_program(args)(*args),
                                      polish_program)
 
     def _kept_program(self, key: tuple, jitted: Callable, args: tuple, config: dict, static_argnums: tuple) -> Callable:
@@ -193,8 +196,10 @@ class Predictor:
         return self._net.lower(self.params, spec, static, stages.flow_rows([task] * batch),
                                self.test_time.network_part)
 
-    def run_network(self, pairs: np.ndarray, tasks: str | Sequence[str] = "flow") -> np.ndarray:
-        """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size.
+    def run_network(self, pairs: np.ndarray, tasks: str | Sequence[str] = "flow", polish: bool = True) -> np.ndarray:
+        """`(N, H, W, 6)` float32 working-size pairs -> `(N, H, W, 2)` pixel maps at the working size, through
+        every test-time stage (the polish on these pairs, whatever `PolishConfig.resolution`; `polish=False`:
+        without it).
 
         `tasks`: one task ("flow" / "stereo") for all rows, or one per row.
         """
@@ -209,7 +214,7 @@ class Predictor:
                 pairs = np.concatenate([pairs, np.repeat(pairs[-1:], pad, 0)])
                 rows = rows + (rows[-1],) * pad
             x = jax.make_array_from_callback(pairs.shape, self._pairs_sharding, lambda idx: pairs[idx])
-        return np.asarray(self.forward(x, rows))[:n]
+        return np.asarray(self.forward(x, rows, polish))[:n]
 
     def working_size(self, height: int, width: int) -> tuple[int, int]:
         """(H, W) the network runs at for an input of `height x width` (`WorkingSize.for_input`)."""
@@ -237,8 +242,19 @@ class Predictor:
         pairs = np.concatenate([np.stack(a), np.stack(b)], axis=-1)
         return resize_images(pairs, *self.working_size(*full)), full
 
+    def polish_size(self, height: int, width: int) -> tuple[int, int]:
+        """(H, W) the polish runs at for an input of `height x width`: the input's own size or the working size
+        (`PolishConfig.resolution`, `PolishConfig.size_for`); the working size when there is no photometric
+        polish."""
+        working = self.working_size(height, width)
+        if not self.test_time.photometric:
+            return working
+        return self.polish_config.size_for(working, (height, width))
+
     def working_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
-        """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b.
+        """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b, through the
+        stages that run at the working size: all of them, but the polish of the jobs that `stage_maps` polishes
+        at their input size (`polish_size`).
 
         The network is called on exactly `batch` pairs at a time (default: all jobs at once; the last call
         padded by repetition), so one compiled function serves a whole run; each pair is resized on its own,
@@ -250,8 +266,10 @@ class Predictor:
         # one shared network: no need to split (and pad) by task; the rows still say their task (the stages' rule)
         groups = tasks if self.separate else ["flow"] * len(jobs)
         sizes = [self.working_size(*input_size(a)) for _, a, _ in jobs]
-        for kind in dict.fromkeys(zip(groups, sizes)):
-            idx = [i for i, key in enumerate(zip(groups, sizes)) if key == kind]
+        here = [self.polish_size(*input_size(a)) == s for (_, a, _), s in zip(jobs, sizes)]
+        keys = list(zip(groups, sizes, here))
+        for kind in dict.fromkeys(keys):
+            idx = [i for i, key in enumerate(keys) if key == kind]
             size = batch or len(idx)
             for start in range(0, len(idx), size):
                 chunk = idx[start:start + size]
@@ -260,9 +278,34 @@ class Predictor:
                 if len(chunk) < size:
                     pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
                     rows += rows[-1:] * (size - len(chunk))
-                for i, m in zip(chunk, self.run_network(pairs, rows)):
+                maps = self.run_network(pairs, rows) if kind[2] else self.run_network(pairs, rows, polish=False)
+                for i, m in zip(chunk, maps):
                     out[i] = m
         return out  # type: ignore[return-value]
+
+    def stage_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
+        """The pixel maps `(H, W, 2)` of `jobs` after every test-time stage, each at the size its polish ran at
+        (`polish_size`): `working_maps`, then for the jobs polished at their input size, the map brought to that
+        size (`map_to_input_resolution`'s rule: a stereo map's disparity as the prediction gets it) and polished
+        there against the images as given, `batch` pairs of one size at a time (padded by repetition)."""
+        maps = self.working_maps(jobs, batch)
+        todo = [i for i, (m, (_, a, _)) in enumerate(zip(maps, jobs))
+                if m.shape[:2] != self.polish_size(*input_size(a))]
+        sizes = [input_size(jobs[i][1]) for i in todo]
+        for size in dict.fromkeys(sizes):
+            idx = [i for i, s in zip(todo, sizes) if s == size]
+            step = batch or len(idx)
+            for start in range(0, len(idx), step):
+                chunk = idx[start:start + step]
+                chunk = chunk + chunk[-1:] * (step - len(chunk))
+                pairs = np.stack([np.concatenate([to_rgb_float(jobs[i][1]), to_rgb_float(jobs[i][2])], -1)
+                                  for i in chunk])
+                rows = stages.flow_rows([jobs[i][0] for i in chunk])
+                up = np.stack([map_to_size(check_task(jobs[i][0]), maps[i], *size) for i in chunk])
+                polished = np.asarray(self._polish_program(jax.device_put(pairs), jax.device_put(up), rows))
+                for i, m in zip(chunk, polished):
+                    maps[i] = m
+        return maps
 
     def predict(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None, *,
                 confidence: bool = False) -> list:
@@ -285,7 +328,7 @@ class Predictor:
         # check runs those stages too (shared by the check and the fill), else those the fill needs
         shared = confidence and self._check_record() == self.test_time
         reversed_jobs = jobs if shared else [jobs[i] for i in fill]
-        maps = self.working_maps(jobs + [checks.reverse_job(*job) for job in reversed_jobs], batch)
+        maps = self.stage_maps(jobs + [checks.reverse_job(*job) for job in reversed_jobs], batch)
         forward, reverse = maps[:n], maps[n:]
         fill_reverse = [reverse[i] for i in fill] if shared else reverse
         if not confidence:
@@ -304,7 +347,7 @@ class Predictor:
                     reverse_maps: Sequence[np.ndarray]) -> list:
         """The polish's fill step (`testtime.POLISH_STEPS`): `predictions` (at the input resolution, one per
         job) with each stereo job's disparity passed through `confidence.left_right_fill` against the right
-        view's disparity. `reverse_maps`: the working-size maps of the `fill_jobs` jobs' `confidence.reverse_job`
+        view's disparity. `reverse_maps`: the `stage_maps` of the `fill_jobs` jobs' `confidence.reverse_job`
         pairs, in that order, predicted with this predictor's own stages (a check is sharp only between maps that
         went through the same stages). Other jobs come back as they are."""
         out = list(predictions)
@@ -315,20 +358,20 @@ class Predictor:
         return out
 
     def backward_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
-        """Working-size maps of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
+        """`stage_maps` of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
         `check` (`confidence.default_check(test_time)` when None); `batch` as in `working_maps`."""
         reverse = [checks.reverse_job(check_task(task), a, b) for task, a, b in jobs]
         own = self.test_time
         self.test_time = self._check_record()
         try:
-            return self.working_maps(reverse, batch)
+            return self.stage_maps(reverse, batch)
         finally:
             self.test_time = own
 
     def checked_predictions(self, jobs: Sequence[tuple[str, Any, Any]], forward: Sequence[np.ndarray],
                             backward: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """(prediction, confidence, occlusion) at each job's input size from its working-size `forward` map
-        (`working_maps`) and the map of its reverse pair (`backward_maps`, run with `check`), by
+        """(prediction, confidence, occlusion) at each job's input size from its `forward` map (`stage_maps`)
+        and the map of its reverse pair (`backward_maps`, run with `check`), by
         `confidence.checked_map` at the occlusion threshold of the check's mode (`confidence.check_mode`)."""
         threshold = checks.OCCLUSION_THRESHOLD[checks.check_mode(self._check_record(), self.test_time)]
         return [checks.checked_map(check_task(task), fw, bw, *input_size(a), threshold)
@@ -361,10 +404,10 @@ class Predictor:
             if occlusion:
                 out += (np.stack([r[2] for r in rows]),)
             return out
-        if self.test_time.fill and check_task(task) == "stereo" and len(images_a) and len(images_a) == len(images_b):
-            # the fill predicts the right views too (`predict`); bad inputs take the path below, which names them
+        pairs, (h, w) = self.prepare(images_a, images_b)  # validates, and names bad inputs
+        if (self.test_time.fill and check_task(task) == "stereo") or self.polish_size(h, w) != pairs.shape[1:3]:
+            # the fill predicts the right views too, the polish at the input size needs the images as given
             return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a)))
-        pairs, (h, w) = self.prepare(images_a, images_b)
         maps = self.run_network(pairs, check_task(task))
         if task == "flow":
             return flow_to_input_resolution(maps, h, w)
@@ -477,7 +520,7 @@ def resolve_working_size(path: str | os.PathLike, choice: Any = None, option: st
 
 def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: TestTime | Mapping | None = None,
                    dtype: Any = None, compile_mode: str = "full", executable_cache: Optional[str] = "auto",
-                   polish_config: PolishConfig = DEFAULT_CONFIG, size_option: str = "working size",
+                   polish_config: Optional[PolishConfig] = None, size_option: str = "working size",
                    options: Optional[Mapping[str, str]] = None) -> Predictor:
     """A Predictor from a shipped model's name (`"demo"`, see `bridge_jax.zoo`) or any checkpoint
     `bridge_jax.checkpointing.read_params` accepts (params-only dir, training workdir, step dir).
@@ -491,6 +534,8 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
       test_time: a `TestTime` as it is, or a mapping of the settings given ({"refine": 0}; None values = not
         given) applied to the card's record (`zoo.card_test_time`; the defaults without a card); None = the
         card's.
+      polish_config: the polish's parameters; None = `polish.DEFAULT_CONFIG` polishing where the card says
+        (`zoo.card_polish_resolution`, its `PolishConfig.resolution`).
       dtype: None = the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
       executable_cache: the folder where compiled programs are kept whole (see `Predictor`); "auto" (the
         default) = the folder of JAX's persistent compilation cache, turning on the one the commands use first
@@ -507,6 +552,10 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
         executable_cache = compile_cache.active_dir() or compile_cache.enable("auto", option="executable_cache")
     if not isinstance(test_time, TestTime):
         test_time = zoo.card_test_time(path).with_given(test_time or {}, options)
+    if polish_config is None:
+        resolution = zoo.card_polish_resolution(path)
+        polish_config = DEFAULT_CONFIG if resolution is None else dataclasses.replace(DEFAULT_CONFIG,
+                                                                                      resolution=resolution)
     size = resolve_working_size(path, size, size_option)
     # before the weights are read: a size that cannot fit is refused without allocating anything
     memory.check_fits(size_option, size.height, size.width, memory.prediction_bytes(size.height, size.width),

@@ -186,6 +186,15 @@ def map_to_input_resolution(task: str, working_map: np.ndarray, height: int, wid
     return disparity_to_input_resolution(-working_map[..., 0], height, width)
 
 
+def map_to_size(task: str, working_map: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A working-size map `(H, W, 2)` brought to `height x width` by `map_to_input_resolution`'s rule, as a
+    map again: `(height, width, 2)` pixels of the new size, a "stereo" map's vertical component 0."""
+    value = map_to_input_resolution(task, working_map, height, width)
+    if task == "flow":
+        return value
+    return np.stack([-value, np.zeros_like(value)], -1)
+
+
 def native_working_size(model_name: str, height: int, width: int,
                         max_pixels: int = NATIVE_MAX_PIXELS) -> tuple[int, int]:
     """The working size that runs an `height x width` input at (nearly) its own resolution.
@@ -230,5 +239,5 @@ def minimum_input_size(model_name: str) -> tuple[int, int]:
 
 __all__ = ["WorkingSize", "NATIVE", "TRAINED", "DEFAULT_WORKING_SIZE", "DEFAULT_HEIGHT",
            "DEFAULT_WIDTH", "NATIVE_MAX_PIXELS", "to_rgb_float", "resize_images", "flow_to_input_resolution",
-           "disparity_to_input_resolution", "map_to_input_resolution", "native_working_size", "input_size",
-           "minimum_input_size", "MAX_UPSAMPLING"]
+           "disparity_to_input_resolution", "map_to_input_resolution", "map_to_size", "native_working_size",
+           "input_size", "minimum_input_size", "MAX_UPSAMPLING"]

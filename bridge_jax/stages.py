@@ -6,8 +6,9 @@ A `testtime.TestTime` record says which stages run; they run in this order:
    (`symmetric_maps`, `TestTime.symmetry`);
 2. `TestTime.refine` passes of test-time iterative residual refinement (`refine_maps`), each pass's residual
    averaged the same way: the same network with no new weights, at K + 1 times the cost;
-3. the photometric polish of the final maps against the images at the working size (`polish.polish_maps`,
-   `TestTime.polish`, its parameters in a `polish.PolishConfig`).
+3. the photometric polish of the final maps against the images (`polish.polish_maps`, `TestTime.polish`, its
+   parameters in a `polish.PolishConfig`): at the working size here; `Predictor` runs it on the images as given
+   instead, after bringing the map to their size (`PolishConfig.resolution`, `Predictor.stage_maps`).
 
 Stages 1-2 are the network program (`network_maps`), stage 3 the polish program (`polish_stage`);
 `predicted_maps` composes the two. `Predictor` compiles them as two programs (`POLISH_APART`), `export` traces

@@ -9,9 +9,10 @@ Fields, each one stage of `bridge_jax.stages` (run in this order, `stages.predic
 * `symmetry`: average every network call over mirrored (and transposed) copies of the pair (`SYMMETRY_MODES`);
 * `refine`: run the network K more times per pair on `b` warped by the maps so far, composing what it still
   finds with them (0 .. `MAX_REFINE`);
-* `polish`: correct the final maps after the network (`POLISH_MODES`): "photometric" against the images at the
-  working size (`bridge_jax.polish`), "fill" by the left-right check of stereo maps at the input resolution
-  (`confidence.left_right_fill`), or both ("photometric+fill", in that order). "none" = the network's own maps.
+* `polish`: correct the final maps after the network (`POLISH_MODES`): "photometric" against the images at
+  their own size (`bridge_jax.polish`; `PolishConfig.resolution`), "fill" by the left-right check of stereo
+  maps at the input resolution (`confidence.left_right_fill`), or both ("photometric+fill", in that order).
+  "none" = the network's own maps.
 
 A record is checked when it is made, so a `Predictor` never holds an unknown setting; it is hashable and
 compares by value, so compiled programs are kept per record. `with_given` applies the settings a user gave

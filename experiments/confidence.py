@@ -68,12 +68,13 @@ def truth(frame, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def collect(pred, frames, modes) -> list[dict]:
-    """Per pair: its key, task, ground truth, and the working-size forward map and backward map of each mode."""
+    """Per pair: its key, task, ground truth, the forward map (`Predictor.stage_maps`) and the backward map of
+    each mode."""
     own = pred.test_time
     items = []
     for fr in frames:
         jobs = [(task, a, b) for _, task, a, b in frame_jobs(fr)]
-        forward = pred.working_maps(jobs, len(jobs))
+        forward = pred.stage_maps(jobs, len(jobs))
         backward = {}
         for mode in modes:
             pred.check = confidence.check_record(mode, own)
@@ -89,7 +90,7 @@ def collect(pred, frames, modes) -> list[dict]:
 def motorcycle_items(pred, modes) -> list[dict]:
     moto = real_checks.motorcycle()
     jobs = [("stereo", moto["left"], moto["right"])]
-    forward = pred.working_maps(jobs, 1)[0]
+    forward = pred.stage_maps(jobs, 1)[0]
     backward = {}
     for mode in modes:
         pred.check = confidence.check_record(mode, pred.test_time)

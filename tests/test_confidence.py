@@ -79,6 +79,21 @@ def test_out_of_view_matches_are_occluded_and_halve_the_confidence():
     assert conf[0, 0] == 1.0 and conf[0, 13] == pytest.approx(0.5)
 
 
+def test_a_backward_map_of_the_working_size_is_brought_to_the_forward_map_s():
+    """A map polished at the input size is checked against a backward map of the working size (check mode
+    "network"): everything moves 4 input px right, the backward map says -2 px at half the size, i.e. -4 input px.
+    Brought up and scaled, the two agree: only the 4 columns whose match leaves b fail. Left at working
+    pixels they would disagree by 2 px (score 4 / 0.7) everywhere."""
+    fw = np.zeros((H, W, 2), np.float32)
+    fw[..., 0] = 4.0
+    bw = np.zeros((H // 2, W // 2, 2), np.float32)
+    bw[..., 0] = -2.0
+    value, conf, occ = confidence.checked_map("flow", fw, bw, H, W, confidence.OCCLUSION_THRESHOLD["network"])
+    np.testing.assert_array_equal(value, fw)
+    assert occ[:, -4:].all() and not occ[:, :-4].any()
+    np.testing.assert_allclose(conf[:, :-4], 1.0, atol=1e-6)
+
+
 def test_to_input_resolution_resizes_the_score_not_the_confidence():
     score = np.zeros((4, 8), np.float32)
     score[:, 4:] = 2.0

@@ -21,8 +21,8 @@ class OffBy(ShiftOracle):
         super().__init__()
         self.delta = np.array(delta, np.float32)
 
-    def working_maps(self, jobs, batch=None):
-        return [m + self.delta for m in super().working_maps(jobs, batch)]
+    def stage_maps(self, jobs, batch=None):
+        return [m + self.delta for m in super().stage_maps(jobs, batch)]
 
 
 def _write_upscaled_cycle(root, seed=0):

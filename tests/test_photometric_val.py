@@ -39,7 +39,7 @@ class ShiftOracle:
         self.use = {"stereo": stereo, "flow": flow}
         self.calls = []
 
-    def working_maps(self, jobs, batch=None):
+    def stage_maps(self, jobs, batch=None):
         self.calls.append((len(jobs), batch))
         out = []
         for task, a, b in jobs:
@@ -98,8 +98,8 @@ def test_wrong_shift_is_penalised_and_mix_uses_alpha():
     cycles = _cycle(4)[None]
 
     class OffByOne(ShiftOracle):
-        def working_maps(self, jobs, batch=None):
-            return [mp + np.array([1.0, 0.0], np.float32) for mp in super().working_maps(jobs, batch)]
+        def stage_maps(self, jobs, batch=None):
+            return [mp + np.array([1.0, 0.0], np.float32) for mp in super().stage_maps(jobs, batch)]
 
     m, _ = photometric.photometric_validation(OffByOne(), cycles, batch=3)
     assert m["stereo_photo_l1"] > 0.2 and m["flow_photo_l1"] > 0.2  # one pixel off on random texture

@@ -102,10 +102,10 @@ class ModelMethod:
         if self.batch_pairs is None:
             self.batch_pairs = len(self._jobs(frames[0])) * self.batch_frames
         t0 = time.perf_counter()
-        maps = self.predictor.working_maps(jobs, self.batch_pairs)
+        maps = self.predictor.stage_maps(jobs, self.batch_pairs)
         # the polish's fill step (stereo jobs only): the right views' maps, then `Predictor.fill_stereo`
         fill = self.predictor.fill_jobs(jobs)
-        reverse = self.predictor.working_maps([reverse_job(*jobs[j]) for j in fill], self.batch_pairs) if fill else []
+        reverse = self.predictor.stage_maps([reverse_job(*jobs[j]) for j in fill], self.batch_pairs) if fill else []
         at_input = self.predictor.fill_stereo(
             jobs, [None if key == "flow_bwd" else map_to_input_resolution(task, m, *image_a.shape[:2])
                    for (_, key), (task, image_a, _), m in zip(owners, jobs, maps)], reverse)

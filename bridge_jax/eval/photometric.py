@@ -196,7 +196,7 @@ def photometric_validation(predictor, cycles: np.ndarray, batch: int, *, params:
     """Photometric validation metrics of a predictor on held-out cycles (see the module docstring).
 
     Args:
-      predictor: a `bridge_jax.inference.Predictor` (anything with `working_maps(jobs, batch=)` returning
+      predictor: a `bridge_jax.inference.Predictor` (anything with `stage_maps(jobs, batch=)` returning
         (H, W, 2) pixel maps at the cycles' size; `height`/`width`, when present, must match the cycles).
       cycles: float32 (N, 4, H, W, 3) in [0, 1] at the predictor's working size (`val_cycles`); the `*_input_px`
         metrics are in pixels of its `input_sizes` (`HeldOutCycles`), of the cycles themselves for a plain array.
@@ -225,7 +225,7 @@ def photometric_validation(predictor, cycles: np.ndarray, batch: int, *, params:
     jobs = []
     for c in cycles:
         jobs += [("stereo", c[0], c[1]), ("stereo", c[1], c[0]), ("flow", c[0], c[2])]
-    maps = np.stack([np.asarray(m, np.float32) for m in predictor.working_maps(jobs, batch=batch)])
+    maps = np.stack([np.asarray(m, np.float32) for m in predictor.stage_maps(jobs, batch=batch)])
     maps = maps.reshape(n, 3, h, w, 2)
 
     sums: dict[str, float] = {}

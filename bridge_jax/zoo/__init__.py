@@ -291,6 +291,13 @@ def card_working_size(spec: str | os.PathLike) -> Optional[str | tuple[int, int]
     return None if value is None else cli.parse_working_size(value)
 
 
+def card_polish_resolution(spec: str | os.PathLike) -> Optional[str]:
+    """Where the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`) runs its polish
+    ("input" or "working", `polish.PolishConfig.resolution`), chosen by its real-image checks; None (no card
+    entry: the polish's own default)."""
+    return _card(spec).get("default_polish_resolution")
+
+
 def card_test_time(spec: str | os.PathLike) -> TestTime:
     """The test-time stages the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
     recommends, chosen by its real-image checks (`TestTime.from_card`); `TestTime()` without such a card."""
@@ -483,6 +490,9 @@ def card_lines(name: str) -> list[str]:
     if chosen.polish != "none":
         lines.append(f"  default polish: {chosen.polish} (chosen by its real-image checks, whose numbers "
                      "below are with it; --polish overrides it)")
+    if meta.get("default_polish_resolution"):
+        lines.append(f"  polish runs at the {meta['default_polish_resolution']} size (chosen by its real-image "
+                     "checks; polish.PolishConfig.resolution)")
     baselines = meta.get("real_images_opencv") or {}  # which OpenCV method each check's "opencv" numbers are
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
