@@ -1,8 +1,8 @@
 """Test-time photometric polish (`bridge_jax.polish`, `TestTime(polish=)`, `--polish`): the filters against
 OpenCV, the local normalisation's invariances, the polish on sub-pixel translations of a smooth texture
 (flow and stereo rows), matches near and beyond b's border, a textureless region, candidate selection and the
-refinement on a hand-built bled motion boundary, and the wiring into the predictor, the export and the
-command."""
+refinement on a hand-built bled motion boundary, the polish at the input size against the working size on a
+hand-built whole-pixel motion, and the wiring into the predictor, the export, the cards and the command."""
 
 
 import dataclasses
