@@ -242,14 +242,15 @@ class Predictor:
         pairs = np.concatenate([np.stack(a), np.stack(b)], axis=-1)
         return resize_images(pairs, *self.working_size(*full)), full
 
-    def polish_size(self, height: int, width: int) -> tuple[int, int]:
-        """(H, W) the polish runs at for an input of `height x width`: the input's own size or the working size
-        (`PolishConfig.resolution`, `PolishConfig.size_for`); the working size when there is no photometric
-        polish."""
-        working = self.working_size(height, width)
+    def polish_size(self, image: Any) -> tuple[int, int]:
+        """(H, W) the polish runs at for the pairs whose first image is `image`: the size of the image as given
+        (for an image read at a reduced size, `predict.ImageReader`, the size it was read at, not the file's) or
+        the working size (`PolishConfig.resolution`, `PolishConfig.size_for`); the working size when there is no
+        photometric polish."""
+        working = self.working_size(*input_size(image))
         if not self.test_time.photometric:
             return working
-        return self.polish_config.size_for(working, (height, width))
+        return self.polish_config.size_for(working, tuple(np.shape(image)[:2]))
 
     def working_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """Working-size pixel maps `(H, W, 2)` of `jobs` = [(task, image a, image b), ...], a -> b, through the
@@ -266,7 +267,7 @@ class Predictor:
         # one shared network: no need to split (and pad) by task; the rows still say their task (the stages' rule)
         groups = tasks if self.separate else ["flow"] * len(jobs)
         sizes = [self.working_size(*input_size(a)) for _, a, _ in jobs]
-        here = [self.polish_size(*input_size(a)) == s for (_, a, _), s in zip(jobs, sizes)]
+        here = [self.polish_size(a) == s for (_, a, _), s in zip(jobs, sizes)]
         keys = list(zip(groups, sizes, here))
         for kind in dict.fromkeys(keys):
             idx = [i for i, key in enumerate(keys) if key == kind]
@@ -278,20 +279,19 @@ class Predictor:
                 if len(chunk) < size:
                     pairs = np.concatenate([pairs, np.repeat(pairs[-1:], size - len(chunk), 0)])
                     rows += rows[-1:] * (size - len(chunk))
-                maps = self.run_network(pairs, rows) if kind[2] else self.run_network(pairs, rows, polish=False)
-                for i, m in zip(chunk, maps):
+                for i, m in zip(chunk, self.run_network(pairs, rows, polish=kind[2])):
                     out[i] = m
         return out  # type: ignore[return-value]
 
     def stage_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """The pixel maps `(H, W, 2)` of `jobs` after every test-time stage, each at the size its polish ran at
-        (`polish_size`): `working_maps`, then for the jobs polished at their input size, the map brought to that
-        size (`map_to_input_resolution`'s rule: a stereo map's disparity as the prediction gets it) and polished
-        there against the images as given, `batch` pairs of one size at a time (padded by repetition)."""
+        (`polish_size`): `working_maps`, then for the jobs polished at the size of their images, the map brought to
+        that size (`map_to_input_resolution`'s rule: a stereo map's disparity as the prediction gets it) and
+        polished there against the images as given, `batch` pairs of one size at a time (padded by repetition)."""
         maps = self.working_maps(jobs, batch)
-        todo = [i for i, (m, (_, a, _)) in enumerate(zip(maps, jobs))
-                if m.shape[:2] != self.polish_size(*input_size(a))]
-        sizes = [input_size(jobs[i][1]) for i in todo]
+        polish_sizes = [self.polish_size(a) for _, a, _ in jobs]
+        todo = [i for i, (m, size) in enumerate(zip(maps, polish_sizes)) if m.shape[:2] != size]
+        sizes = [polish_sizes[i] for i in todo]
         for size in dict.fromkeys(sizes):
             idx = [i for i, s in zip(todo, sizes) if s == size]
             step = batch or len(idx)
@@ -405,7 +405,7 @@ class Predictor:
                 out += (np.stack([r[2] for r in rows]),)
             return out
         pairs, (h, w) = self.prepare(images_a, images_b)  # validates, and names bad inputs
-        if (self.test_time.fill and check_task(task) == "stereo") or self.polish_size(h, w) != pairs.shape[1:3]:
+        if (self.test_time.fill and check_task(task) == "stereo") or self.polish_size(images_a[0]) != pairs.shape[1:3]:
             # the fill predicts the right views too, the polish at the input size needs the images as given
             return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a)))
         maps = self.run_network(pairs, check_task(task))

@@ -128,7 +128,7 @@ class _FakePredictor(inference.Predictor):
     def __init__(self, h=64, w=128):
         self.size, self.separate, self.calls = inference.WorkingSize(h, w), False, []
 
-    def run_network(self, pairs, tasks="flow"):
+    def run_network(self, pairs, tasks="flow", polish=True):
         self.calls.append(len(pairs))
         out = np.zeros((len(pairs), self.height, self.width, 2), np.float32)
         out[..., 0] = -4.0                               # disparity 4 working px / flow u = −4 px

@@ -14,6 +14,8 @@ import pytest
 
 from bridge_jax import export, inference, models, polish, zoo
 from bridge_jax.inference import TestTime, WorkingSize
+from bridge_jax.predict import ReducedImage
+from tests.scenes import KnownMaps
 from tests.test_symmetry import check_predict_option
 
 H, W = 64, 96
@@ -369,8 +371,8 @@ def test_the_predictor_polishes_at_the_input_size(monkeypatch):
     default) the exact motion minimises the energy: mean error 0.001 px. Polished on the images resized to the
     working size (the polish until 2026-12-07, computed here by hand), the resampling leaves 0.027 px. The
     predictor's answer is `polish_maps` on the map brought to the input size, for `predict` and `predict_pairs`
-    alike; `polish_size` says where it runs, and `max_pixels` sends larger inputs back to the working size."""
-    from tests.scenes import KnownMaps
+    alike, and for images read at a reduced size; `polish_size` says where it runs, and `max_pixels` sends larger
+    inputs back to the working size."""
     h, w, size = 80, 150, WorkingSize(64, 128)
     a, b = _whole_pixel_pair(h, w)
     known = np.zeros((64, 128, 2), np.float32)
@@ -378,13 +380,20 @@ def test_the_predictor_polishes_at_the_input_size(monkeypatch):
     pred = inference.Predictor(*models.init(0, PWC), size=size, test_time=TestTime(polish="photometric"),
                                model_cfg=PWC, polish_config=CONFIG)
     monkeypatch.setattr(pred, "working_maps", KnownMaps([("flow", a, b, known)]))
-    assert pred.polish_size(h, w) == (h, w)
+    assert pred.polish_size(a) == (h, w)
     got = pred.predict([("flow", a, b)])[0]
     np.testing.assert_array_equal(pred.predict_pairs([a], [b])[0], got)
     pairs = np.concatenate([a, b], -1)[None]
     up = inference.flow_to_input_resolution(known[None], h, w)
     want = np.asarray(polish.polish_maps(jnp.asarray(pairs), jnp.asarray(up), jnp.asarray([1.0]), CONFIG))[0]
     _agree(got, want, mean=1e-5)
+    # read at half the file's size (`predict.ReducedImage`): polished at the size it was read at, then brought to
+    # the file's size as every map is
+    ra, rb = (ReducedImage.of(x, (2 * h, 2 * w)) for x in (a, b))
+    monkeypatch.setattr(pred, "working_maps", KnownMaps([("flow", ra, rb, known)]))
+    assert pred.polish_size(ra) == (h, w)
+    np.testing.assert_allclose(pred.predict([("flow", ra, rb)])[0],
+                               inference.flow_to_input_resolution(got[None], 2 * h, 2 * w)[0], atol=1e-5)
     truth, inner = np.float32([3, 2]), np.s_[10:-10, 10:-10]
     at_input = np.abs(got[inner] - truth).mean()
     small = inference.resize_images(pairs, 64, 128)
@@ -392,11 +401,11 @@ def test_the_predictor_polishes_at_the_input_size(monkeypatch):
     at_working = inference.flow_to_input_resolution(np.asarray(at_working), h, w)[0]
     assert at_input < 0.005 and 5 * at_input < np.abs(at_working[inner] - truth).mean(), at_input
     pred.polish_config = dataclasses.replace(CONFIG, resolution="working")
-    assert pred.polish_size(h, w) == (64, 128)
+    assert pred.polish_size(a) == (64, 128)
     pred.polish_config = dataclasses.replace(CONFIG, max_pixels=h * w - 1)
-    assert pred.polish_size(h, w) == (64, 128)
+    assert pred.polish_size(a) == (64, 128)
     pred.test_time = TestTime()
-    assert pred.polish_size(h, w) == (64, 128)  # no photometric polish: nothing moves
+    assert pred.polish_size(a) == (64, 128)  # no photometric polish: nothing moves
     for bad in ({"resolution": "full"}, {"max_pixels": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             polish.PolishConfig(**bad)
