@@ -199,8 +199,19 @@ the same stages both ways (and costs about 1.1x instead of 2x); the flow errors 
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The left-right fill: the polish's "fill" step (`testtime.POLISH_MODES`)
+# The fill: the polish's "fill" step (`testtime.POLISH_MODES`), left-right for disparity, forward-backward for flow
 # ----------------------------------------------------------------------------------------------------------
+
+GUIDED_FILL_RADIUS = 7
+"""Half-width of the window the flow fill (`guided_fill`) takes consistent neighbours from, px of the input
+resolution. This and the two below were set once, before any score was looked at: a window about the size of
+the network's own detail (it answers at a quarter of its working size), a colour tolerance of a few percent of
+the range, a few rounds for occlusions a few tens of pixels wide."""
+GUIDED_FILL_COLOUR_SIGMA = 0.08
+"""Colour tolerance of the flow fill (RGB distance in [0, 1] units): a neighbour 0.08 away weighs exp(-1/2)."""
+GUIDED_FILL_ROUNDS = 4
+"""Rounds of the flow fill before the nearest-neighbour rest (`guided_fill`)."""
+
 
 def left_right_difference(d_left: np.ndarray, d_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far the two views' disparities disagree, per pixel of the left view.
@@ -285,6 +296,126 @@ def left_right_fill(d_left: np.ndarray, d_right: np.ndarray,
     difference, out_of_view = left_right_difference(d_left, d_right)
     failed = (difference > max_difference) | out_of_view
     return background_fill(d_left, ~failed), failed
+
+
+def forward_backward_difference(flow: np.ndarray, backward: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far a flow and its backward flow disagree, per pixel of the first image.
+
+    Pixel x of `a` is found at x + F(x) in `b`; the backward flow B (b -> a, in b's frame), read there, should
+    bring it back: F(x) + B(x + F(x)) = 0.
+
+    Args:
+      flow: `(H, W, 2)` flow F from a to b, px (x, y).
+      backward: `(H, W, 2)` flow B from b to a, px, of the same size.
+    Returns:
+      |F(x) + B(x + F(x))| `(H, W)` float32; B(x + F(x)) `(H, W, 2)` float32 (bilinear, clamped at the border);
+      `(H, W)` bool: x + F(x) lies outside the image (b does not see the pixel).
+    """
+    flow = np.asarray(flow, np.float32)
+    backward = np.asarray(backward, np.float32)
+    if flow.ndim != 3 or flow.shape[-1] != 2 or backward.shape != flow.shape:
+        raise ValueError(f"forward_backward_difference: expected two (H, W, 2) flows of one shape, got "
+                         f"{flow.shape} and {backward.shape}")
+    h, w = flow.shape[:2]
+    at_match = np.asarray(geometry.warp(backward[None], flow[None]))[0]
+    xs = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
+    ys = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
+    out_of_view = (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+    return np.sqrt(np.sum(np.square(flow + at_match), -1)).astype(np.float32), at_match, out_of_view
+
+
+def nearest_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`values` `(H, W, C)` with each invalid pixel given the value of the nearest valid one (Euclidean distance,
+    OpenCV's 5x5 approximation; ties as OpenCV breaks them). No valid pixel: unchanged."""
+    import cv2  # here, not at the top: the checks above run without OpenCV
+    valid = np.asarray(valid, bool)
+    if valid.all() or not valid.any():
+        return values
+    _, labels = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    # labels number the valid pixels (the zeros of the input) from 1 in raster order
+    ys, xs = np.nonzero(valid)
+    return values[ys[labels - 1], xs[labels - 1]]
+
+
+def guided_fill(values: np.ndarray, valid: np.ndarray, image: np.ndarray, radius: int = GUIDED_FILL_RADIUS,
+                colour_sigma: float = GUIDED_FILL_COLOUR_SIGMA, rounds: int = GUIDED_FILL_ROUNDS) -> np.ndarray:
+    """Fill the invalid pixels of `values` from the valid pixels around them that look like them.
+
+    Each invalid pixel x takes the average of the valid values in the (2 radius + 1)^2 window around it, weighted
+    by exp(-|I(y) - I(x)|^2 / (2 colour_sigma^2) - |y - x|^2 / (2 (radius / 2)^2)): a pixel hidden behind a
+    moving object takes the motion of the surface it belongs to (its colour), not the object's. A round fills
+    every invalid pixel whose weights add up to more than 1e-6; the pixels it filled count as valid in the next round,
+    so a hole `rounds * radius` px wide closes from its sides. What is left after `rounds` takes its nearest valid
+    pixel's value (`nearest_fill`).
+
+    Args:
+      values: `(H, W, C)` float maps (flow: C = 2).
+      valid: `(H, W)` bool, True = keep.
+      image: `(H, W, 3)` float32 RGB in [0, 1], the image the values belong to.
+    Returns:
+      `(H, W, C)` float32, dense (unchanged when nothing or everything is valid).
+    """
+    out = np.array(values, np.float32)
+    ok = np.array(valid, bool)
+    image = np.asarray(image, np.float32)
+    if out.ndim != 3 or ok.shape != out.shape[:2] or image.shape[:2] != out.shape[:2]:
+        raise ValueError(f"guided_fill: expected (H, W, C) values with an (H, W) mask and an (H, W, 3) image, got "
+                         f"{out.shape}, {ok.shape} and {image.shape}")
+    if ok.all() or not ok.any():
+        return out
+    h, w = ok.shape
+    spatial = 2.0 * (radius / 2.0) ** 2
+    for _ in range(rounds):
+        ys, xs = np.nonzero(~ok)
+        if len(ys) == 0:
+            break
+        num = np.zeros((len(ys), out.shape[-1]), np.float64)
+        den = np.zeros(len(ys), np.float64)
+        colour = image[ys, xs]
+        for dy in range(-radius, radius + 1):
+            yy = ys + dy
+            in_rows = (yy >= 0) & (yy < h)
+            yy = np.clip(yy, 0, h - 1)
+            for dx in range(-radius, radius + 1):
+                xx = xs + dx
+                inside = in_rows & (xx >= 0) & (xx < w)
+                xx = np.clip(xx, 0, w - 1)
+                near = np.sum(np.square(image[yy, xx] - colour), -1)
+                weight = (inside & ok[yy, xx]) * np.exp(-near / (2.0 * colour_sigma ** 2)
+                                                        - (dx * dx + dy * dy) / spatial)
+                num += weight[:, None] * out[yy, xx]
+                den += weight
+        # a pixel whose window holds no valid pixel that looks like it (every weight below ~1e-6: a colour
+        # distance above ~0.35 even next to it) waits for a later round, or the nearest-pixel rest
+        got = den > 1e-6
+        out[ys[got], xs[got]] = (num[got] / den[got, None]).astype(np.float32)
+        ok[ys[got], xs[got]] = True
+    return nearest_fill(out, ok)
+
+
+def forward_backward_fill(flow: np.ndarray, backward: np.ndarray, image: np.ndarray,
+                          max_difference: float = FILL_MAX_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:
+    """The flow with the pixels that fail the forward-backward check replaced from their consistent neighbours
+    of the same look (`guided_fill`).
+
+    A pixel fails when its match lies outside the second image, or when
+    |F + B(x + F)|^2 > ALPHA1 (|F|^2 + |B(x + F)|^2) + max_difference^2
+    (`forward_backward_difference`): the paper's check (eq. 6) with its relative part (a flow of 30 px may be off
+    by 3 px before it fails) and, in place of its constant part of the working size, the fill's tolerance in
+    pixels of the input resolution (`testtime.FILL_MAX_DIFFERENCE`, the same as the left-right fill's).
+
+    Args:
+      flow: `(H, W, 2)` flow a -> b, px; backward: `(H, W, 2)` flow b -> a, px (the same stages' map of (b, a)).
+      image: `(H, W, 3)` float32 RGB in [0, 1], the first image a.
+    Returns:
+      (filled `(H, W, 2)` float32, failed `(H, W)` bool: the pixels that were replaced).
+    """
+    difference, at_match, out_of_view = forward_backward_difference(flow, backward)
+    flow = np.asarray(flow, np.float32)
+    limit = ALPHA1 * (np.sum(np.square(flow), -1) + np.sum(np.square(at_match), -1)) + max_difference ** 2
+    failed = (np.square(difference) > limit) | out_of_view
+    return guided_fill(flow, ~failed, image), failed
 
 
 def right_view_disparity(reverse_prediction: np.ndarray) -> np.ndarray:

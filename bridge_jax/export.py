@@ -104,14 +104,15 @@ def _working_size(args) -> tuple[int, int] | None:
 
 def without_fill(test_time: testtime.TestTime, given: str | None) -> testtime.TestTime:
     """The test-time record an artifact can hold: the polish's fill step runs on the host after the network (it
-    predicts each stereo pair's right view too, `Predictor.fill_stereo`), so it cannot be part of one program.
+    predicts each pair's reverse pair too, `Predictor.fill_maps`), so it cannot be part of one program.
     When the fill came from a card's recommendation it is dropped with a notice on stderr; when the user asked
     for it (`given`, their --polish), a ValueError naming --polish."""
     rest = test_time.photometric_part
     if given is not None:
-        raise ValueError(f"--polish {given}: the fill step runs on the host after the network (it predicts the right "
-                         f"view too) and cannot be exported; use --polish {rest.polish} and fill the artifact's "
-                         f"disparities with bridge_jax.confidence.left_right_fill")
+        raise ValueError(f"--polish {given}: the fill step runs on the host after the network (it predicts the reverse "
+                         f"pair too) and cannot be exported; use --polish {rest.polish} and fill the artifact's "
+                         f"disparities with bridge_jax.confidence.left_right_fill, its flows with "
+                         f"bridge_jax.confidence.forward_backward_fill")
     print(f"bridge-export: the card's polish {test_time.polish} runs its fill step on the host; the artifact "
           f"holds --polish {rest.polish}", file=sys.stderr)
     return rest

@@ -182,7 +182,7 @@ class Predictor:
     def _polish_program(self, pairs: jax.Array, maps: jax.Array, flow_rows: np.ndarray) -> jax.Array:
         """The polish program (stage 3) run on `maps`: compiled at full optimisation whatever `compile_mode`
         (`stages.POLISH_APART`), kept per shape, test-time record and `PolishConfig` (`_kept_program`)."""
-        test_time = self.test_time.photometric_part  # the fill runs on the host (`fill_stereo`)
+        test_time = self.test_time.photometric_part  # the fill runs on the host (`fill_maps`)
         config = config_for_rows(self.polish_config, flow_rows)
         args = (pairs, maps, flow_rows, test_time, config)
         key = ("polish", tuple(pairs.shape), str(pairs.dtype), test_time, config)
@@ -318,10 +318,10 @@ class Predictor:
         left-right for disparity): the jobs' backward maps are predicted too, with the stages of `check`
         (`confidence.default_check` of `test_time` when None), in the same batches when those are the same.
 
-        When the polish has its fill step (`testtime.POLISH_STEPS`), each stereo job's reverse pair is predicted
-        too, with this predictor's own stages, and the disparity is filled where the left-right check fails
-        (`fill_stereo`); its confidence and occlusion are those of the check of the map before the fill (the
-        filled pixels are the ones the check distrusted)."""
+        When the polish has its fill step (`testtime.POLISH_STEPS`), each job's reverse pair is predicted too,
+        with this predictor's own stages, and the map is filled where the left-right (disparity) or
+        forward-backward (flow) check fails (`fill_maps`); its confidence and occlusion are those of the check of
+        the map before the fill (the filled pixels are the ones the check distrusted)."""
         jobs = [(check_task(task), a, b) for task, a, b in jobs]
         n, fill = len(jobs), self.fill_jobs(jobs)
         # reverse pairs run with this predictor's own stages, in the forward pairs' batches: every job's when the
@@ -333,29 +333,45 @@ class Predictor:
         fill_reverse = [reverse[i] for i in fill] if shared else reverse
         if not confidence:
             out = [map_to_input_resolution(task, m, *input_size(a)) for (task, a, _), m in zip(jobs, forward)]
-            return self.fill_stereo(jobs, out, fill_reverse)
+            return self.fill_maps(jobs, out, fill_reverse)
         rows = self.checked_predictions(jobs, forward, reverse if shared else self.backward_maps(jobs, batch))
-        filled = self.fill_stereo(jobs, [r[0] for r in rows], fill_reverse)
+        filled = self.fill_maps(jobs, [r[0] for r in rows], fill_reverse)
         return [(value, conf, occ) for value, (_, conf, occ) in zip(filled, rows)]
 
     def fill_jobs(self, jobs: Sequence[tuple[str, Any, Any]]) -> list[int]:
-        """Indices of the `jobs` the polish's fill step changes: the stereo jobs when `test_time.fill`, else
-        none."""
-        return [i for i, (task, _, _) in enumerate(jobs) if check_task(task) == "stereo"] if self.test_time.fill else []
+        """Indices of the `jobs` the polish's fill step changes: every job when `test_time.fill` (stereo and flow
+        alike), else none."""
+        return list(range(len(jobs))) if self.test_time.fill else []
 
-    def fill_stereo(self, jobs: Sequence[tuple[str, Any, Any]], predictions: list,
-                    reverse_maps: Sequence[np.ndarray]) -> list:
+    def fill_maps(self, jobs: Sequence[tuple[str, Any, Any]], predictions: list,
+                  reverse_maps: Sequence[np.ndarray], indices: Optional[Sequence[int]] = None) -> list:
         """The polish's fill step (`testtime.POLISH_STEPS`): `predictions` (at the input resolution, one per
         job) with each stereo job's disparity passed through `confidence.left_right_fill` against the right
-        view's disparity. `reverse_maps`: the `stage_maps` of the `fill_jobs` jobs' `confidence.reverse_job`
+        view's disparity, and each flow job's flow through `confidence.forward_backward_fill` against the
+        backward flow. `reverse_maps`: the `stage_maps` of the `fill_jobs` jobs' `confidence.reverse_job`
         pairs, in that order, predicted with this predictor's own stages (a check is sharp only between maps that
-        went through the same stages). Other jobs come back as they are."""
+        went through the same stages); `indices`: the jobs they belong to when only some of the `fill_jobs` are
+        filled. Other jobs come back as they are."""
         out = list(predictions)
-        for i, reverse in zip(self.fill_jobs(jobs), reverse_maps, strict=True):
-            height, width = input_size(jobs[i][1])
-            d_right = checks.right_view_disparity(map_to_input_resolution("stereo", reverse, height, width))
-            out[i] = checks.left_right_fill(out[i], d_right)[0]
+        for i, reverse in zip(self.fill_jobs(jobs) if indices is None else indices, reverse_maps, strict=True):
+            task, image_a, _ = jobs[i]
+            height, width = input_size(image_a)
+            reverse = map_to_input_resolution(check_task(task), reverse, height, width)
+            if check_task(task) == "stereo":
+                out[i] = checks.left_right_fill(out[i], checks.right_view_disparity(reverse))[0]
+            else:
+                out[i] = checks.forward_backward_fill(out[i], reverse, self._guide(image_a, height, width))[0]
         return out
+
+    @staticmethod
+    def _guide(image: Any, height: int, width: int) -> np.ndarray:
+        """`image` as float32 RGB in [0, 1] at `height x width` (an image read at a reduced size is brought up
+        to the size its maps come back at)."""
+        rgb = to_rgb_float(image)
+        if rgb.shape[:2] != (height, width):
+            import cv2
+            rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_LINEAR)
+        return rgb
 
     def backward_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """`stage_maps` of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
@@ -405,8 +421,8 @@ class Predictor:
                 out += (np.stack([r[2] for r in rows]),)
             return out
         pairs, (h, w) = self.prepare(images_a, images_b)  # validates, and names bad inputs
-        if (self.test_time.fill and check_task(task) == "stereo") or self.polish_size(images_a[0]) != pairs.shape[1:3]:
-            # the fill predicts the right views too, the polish at the input size needs the images as given
+        if self.test_time.fill or self.polish_size(images_a[0]) != pairs.shape[1:3]:
+            # the fill predicts the reverse pairs too, the polish at the input size needs the images as given
             return np.stack(self.predict([(task, a, b) for a, b in zip(images_a, images_b)], len(images_a)))
         maps = self.run_network(pairs, check_task(task))
         if task == "flow":

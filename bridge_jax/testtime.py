@@ -11,7 +11,8 @@ Fields, each one stage of `bridge_jax.stages` (run in this order, `stages.predic
   finds with them (0 .. `MAX_REFINE`);
 * `polish`: correct the final maps after the network (`POLISH_MODES`): "photometric" against the images at
   their own size (`bridge_jax.polish`; `PolishConfig.resolution`), "fill" by the left-right check of stereo
-  maps at the input resolution (`confidence.left_right_fill`), or both ("photometric+fill", in that order).
+  maps and the forward-backward check of flow maps at the input resolution (`confidence.left_right_fill`,
+  `confidence.forward_backward_fill`), or both ("photometric+fill", in that order).
   "none" = the network's own maps.
 
 A record is checked when it is made, so a `Predictor` never holds an unknown setting; it is hashable and
@@ -32,13 +33,15 @@ SYMMETRY_MODES = ("none", "flips", "dihedral")
 left-right, upside-down and both (4 network calls' worth); "dihedral" = those 4 and the same 4 transposed (8).
 Stereo pairs count only the copies that are still left -> right stereo pairs: as given and upside-down."""
 POLISH_STEPS = ("photometric", "fill")
-"""The steps a polish may run, in the order they run: "photometric" (`polish.polish_maps`, every map, at the
-working size) and "fill" (stereo maps only: the right view's disparity is predicted too, and the left view's
-pixels that fail the left-right check take their row's background disparity, `confidence.left_right_fill`;
-flow maps are left as they are)."""
+"""The steps a polish may run, in the order they run: "photometric" (`polish.polish_maps`, every map, at the size
+`PolishConfig.resolution` says) and "fill" (each pair's reverse pair is predicted too: for stereo maps the right
+view's disparity, and the left view's pixels that fail the left-right check take their row's background disparity,
+`confidence.left_right_fill`; for flow maps the backward flow, and the pixels that fail the forward-backward check
+take the flow of their consistent neighbours of the same colour, `confidence.forward_backward_fill`)."""
 FILL_MAX_DIFFERENCE = 1.0
 """The fill step's tolerance, pixels of the input resolution: a left disparity that differs from the right view's
-disparity at its match by more than this is replaced (`confidence.left_right_fill`). The value the standard
+disparity at its match by more than this is replaced (`confidence.left_right_fill`); a flow is allowed this plus
+the forward-backward check's relative part (`confidence.forward_backward_fill`). The value the standard
 semi-global matcher uses for the same check (`eval.baselines.sgbm_disparity`, ``disp12MaxDiff`` 1), taken as it
 is, not tuned on any score."""
 POLISH_MODES = ("none", "photometric", "fill", "photometric+fill")
@@ -96,7 +99,8 @@ class TestTime:
 
     @property
     def fill(self) -> bool:
-        """Whether the polish runs the left-right fill of stereo maps (`confidence.left_right_fill`)."""
+        """Whether the polish runs its fill step: stereo maps by the left-right check (`confidence.left_right_fill`),
+        flow maps by the forward-backward check (`confidence.forward_backward_fill`)."""
         return "fill" in self.polish_steps
 
     @property

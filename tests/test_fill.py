@@ -1,6 +1,7 @@
-"""The polish's fill step (`confidence.left_right_fill`, `TestTime(polish="...+fill")`, `Predictor.fill_stereo`):
-the left-right difference and the background fill on rows derived by hand, and the predictor's fill against the
-same hand-derived answer with the network's maps injected."""
+"""The polish's fill step (`confidence.left_right_fill`, `confidence.forward_backward_fill`,
+`TestTime(polish="...+fill")`, `Predictor.fill_maps`): the left-right difference and the background fill on rows
+derived by hand, the forward-backward difference and the guided fill of flow on a moving square built by hand, and
+the predictor's fill against the same hand-derived answers with the network's maps injected."""
 
 import numpy as np
 import pytest
@@ -63,6 +64,107 @@ def test_the_fill_keeps_a_consistent_map_and_its_tolerance_is_one_pixel():
     assert failed[0, 4] and filled[0, 4] == pytest.approx(2.9)
 
 
+def test_forward_backward_difference_by_hand():
+    # a 1 x 4 image: flow (1, 0) everywhere; the backward flow -1 at columns 0-2, +1 at column 3
+    flow = np.zeros((1, 4, 2), np.float32)
+    flow[..., 0] = [1.0, 1.0, 0.5, 1.0]
+    backward = np.zeros((1, 4, 2), np.float32)
+    backward[..., 0] = [-1.0, -1.0, -1.0, 1.0]
+    diff, at_match, out = confidence.forward_backward_difference(flow, backward)
+    # column 0 reads column 1 (-1): 0; column 1 reads column 2 (-1): 0; column 2 reads 2.5, half way between -1
+    # and 1 (0): 0.5; column 3 matches right of the image (4 > 3), read at the clamped column 3 (+1): 2
+    np.testing.assert_allclose(diff, [[0.0, 0.0, 0.5, 2.0]])
+    np.testing.assert_allclose(at_match[..., 0], [[-1.0, -1.0, 0.0, 1.0]])
+    assert out.tolist() == [[False, False, False, True]]
+    with pytest.raises(ValueError, match=r"two \(H, W, 2\) flows of one shape"):
+        confidence.forward_backward_difference(flow, backward[:, :3])
+
+
+def _moving_square():
+    """A 40 x 60 pair: grey background (0.3, slightly textured) at rest, a red square at rows 10-19, columns
+    20-29 of `a` moving 6 px right (columns 26-35 of `b`). Truth: flow 6 on the square, 0 elsewhere; the
+    background at columns 30-35 of the square's rows is hidden in `b` (occluded). Backward flow (b -> a, true):
+    -6 on the square's place in `b`, 0 elsewhere. The forward flow as a network gives it: the square's motion
+    bled 4 px into the hidden background (columns 30-33). Returns (image a, bled flow, backward, true flow)."""
+    rng = np.random.default_rng(0)
+    image = 0.3 + 0.02 * rng.standard_normal((40, 60, 3)).astype(np.float32)
+    image[10:20, 20:30] = [0.9, 0.1, 0.1]
+    truth = np.zeros((40, 60, 2), np.float32)
+    truth[10:20, 20:30, 0] = 6.0
+    bled = truth.copy()
+    bled[10:20, 30:34, 0] = 6.0
+    backward = np.zeros((40, 60, 2), np.float32)
+    backward[10:20, 26:36, 0] = -6.0
+    return image.clip(0, 1), bled, backward, truth
+
+
+def test_the_flow_fill_gives_hidden_background_its_own_motion_by_hand():
+    image, bled, backward, truth = _moving_square()
+    filled, failed = confidence.forward_backward_fill(bled, backward, image)
+    # the bled columns 30-33 land on background in b (residual 6); the hidden columns 34-35 (flow 0) land on the
+    # square in b (-6): both fail the check (36 > 0.01 * 36 + 1); nothing else does
+    expected_failed = np.zeros((40, 60), bool)
+    expected_failed[10:20, 30:36] = True
+    np.testing.assert_array_equal(failed, expected_failed)
+    # filled from the grey neighbours (flow 0): the red square next to them weighs exp(-0.51 / 0.0128) ~ 1e-17
+    np.testing.assert_allclose(filled, truth, atol=1e-5)
+    # the true flow fails the check just where the background is hidden (columns 30-35 land on the square in
+    # b), and is kept: filled there with what it was
+    kept, hidden = confidence.forward_backward_fill(truth, backward, image)
+    np.testing.assert_array_equal(hidden, expected_failed)
+    np.testing.assert_allclose(kept, truth, atol=1e-5)
+
+
+def test_the_flow_fills_tolerance_grows_with_the_motion():
+    # uniform vertical motion and a backward flow off by `off` px: the check compares off^2 with
+    # 0.01 (motion^2 + (motion + off)^2) + 1 (a 3 px error fails a 3 px motion, passes a 30 px one)
+    image = np.full((64, 8, 3), 0.5, np.float32)
+    for motion, off, fails in ((3.0, 2.5, True), (30.0, 2.5, False), (0.0, 0.9, False), (0.0, 1.1, True)):
+        flow = np.zeros((64, 8, 2), np.float32)
+        flow[..., 1] = motion
+        backward = np.zeros((64, 8, 2), np.float32)
+        backward[..., 1] = -(motion + off)
+        _, failed = confidence.forward_backward_fill(flow, backward, image)
+        inside = 64 - 1 - int(motion)  # rows whose match lies inside the image
+        assert failed[:inside].all() == fails and (not fails) == (~failed[:inside]).all(), (motion, off)
+        assert failed[inside + 1:].all()  # matches below the image: out of view
+
+
+def test_guided_fill_takes_the_look_alike_neighbours_and_the_nearest_beyond_its_reach():
+    image = np.zeros((30, 80, 3), np.float32)
+    image[:, 40:] = 1.0
+    values = np.zeros((30, 80, 1), np.float32)
+    values[:, 40:] = 5.0
+    valid = np.ones((30, 80), bool)
+    valid[10:20, 35:45] = False  # a hole across the boundary: each side takes its own look's value
+    out = confidence.guided_fill(values, valid, image)
+    np.testing.assert_allclose(out[..., 0], values[..., 0], atol=1e-5)
+    # only the two end columns valid (1 on the left, 2 on the right): the rounds grow each 28 px inwards (4 rounds
+    # of a 7 px window), the 20 columns between take the nearest grown pixel: columns 30-39 the left's, 40-49 the
+    # right's
+    values = np.zeros((30, 80, 1), np.float32)
+    values[:, 0], values[:, 79] = 1.0, 2.0
+    valid = np.zeros((30, 80), bool)
+    valid[:, 0] = valid[:, 79] = True
+    out = confidence.guided_fill(values, valid, np.zeros_like(image))
+    assert (out[:, :40, 0] == 1.0).all() and (out[:, 40:, 0] == 2.0).all()
+
+
+def test_nearest_fill_against_brute_force():
+    rng = np.random.default_rng(1)
+    values = rng.standard_normal((23, 31, 2)).astype(np.float32)
+    valid = rng.uniform(size=(23, 31)) < 0.05
+    out = confidence.nearest_fill(values, valid)
+    ys, xs = np.nonzero(valid)
+    for y in range(23):
+        for x in range(31):
+            d = np.hypot(ys - y, xs - x)
+            # the value of a valid pixel within OpenCV's 5x5 distance approximation (< 2 %) of the nearest
+            near = np.flatnonzero(d <= d.min() * 1.02 + 1e-6)
+            chosen = [i for i in near if np.array_equal(values[ys[i], xs[i]], out[y, x])]
+            assert chosen, (y, x)
+
+
 def test_polish_modes_split_into_their_steps():
     assert TestTime().polish_steps == ()
     both = TestTime(polish="photometric+fill")
@@ -100,13 +202,23 @@ def _images():
     return [rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(4)]
 
 
+def _flows():
+    """A flow of 1.5 px down and right with a spurious block of 9 px at rows 10-19, columns 30-39, and its
+    backward flow -1.5 everywhere: the block fails the forward-backward check (|9 - 1.5| against
+    sqrt(0.01 (81 + 2.25) + 1) = 1.35 px), as do the last two rows and columns (matches beyond the image).
+    Returns (flow, backward, the flow filled by hand: 1.5 everywhere, every neighbour's value)."""
+    flow = np.full((H, W, 2), 1.5, np.float32)
+    flow[10:20, 30:40] = 9.0
+    return flow, np.full((H, W, 2), -1.5, np.float32), np.full((H, W, 2), 1.5, np.float32)
+
+
 def _entries(left, right, flow_b):
     d_left, d_right, _ = _scene()
     zeros = np.zeros((H, W), np.float32)
-    flow = np.full((H, W, 2), 1.5, np.float32)
+    flow, backward, _ = _flows()
     return [("stereo", left, right, np.stack([-d_left, zeros], -1)),
             ("stereo", right[:, ::-1], left[:, ::-1], np.stack([-d_right[:, ::-1], zeros], -1)),
-            ("flow", left, flow_b, flow)]
+            ("flow", left, flow_b, flow), ("flow", flow_b, left, backward)]
 
 
 def _filling(predictor, monkeypatch, left, right, later):
@@ -118,14 +230,16 @@ def _filling(predictor, monkeypatch, left, right, later):
     return known
 
 
-def test_the_predictor_fills_stereo_maps_and_leaves_flow_alone(predictor, monkeypatch):
+def test_the_predictor_fills_stereo_and_flow_maps(predictor, monkeypatch):
     left, right, later, _ = _images()
     d_left, _, expected = _scene()
+    raw_flow, _, expected_flow = _flows()
     known = _filling(predictor, monkeypatch, left, right, later)
     disp, flow = predictor.predict([("stereo", left, right), ("flow", left, later)])
     np.testing.assert_array_equal(disp, expected)
-    np.testing.assert_array_equal(flow, np.full((H, W, 2), 1.5, np.float32))
-    assert known.calls == [3]  # the right view's pair in the same call as the two jobs
+    np.testing.assert_allclose(flow, expected_flow, atol=1e-6)
+    assert known.calls == [4]  # the right view's pair and the backward flow's in the same call as the two jobs
+    np.testing.assert_allclose(predictor.predict_pair(left, later), expected_flow, atol=1e-6)
     # the same through predict_pair (a batch of one stereo pair) and with confidence: the map is filled, the
     # occlusion is that of the check of the map before the fill: the bled columns 55-59 (6 lands on the right
     # view's background 2 at 49-53; score 4^2 / (0.01 (36 + 4) + 0.5) = 17.8, above the default check's 16)
@@ -133,9 +247,10 @@ def test_the_predictor_fills_stereo_maps_and_leaves_flow_alone(predictor, monkey
     filled, occ = predictor.predict_pair(left, right, "stereo", occlusion=True)
     np.testing.assert_array_equal(filled, expected)
     assert occ[30, 55:60].all() and not occ[30, 60:80].any() and not occ[30, 2:50].any()
-    # without the fill step the map is the network's own
+    # without the fill step the maps are the network's own
     monkeypatch.setattr(predictor, "test_time", TestTime())
     np.testing.assert_array_equal(predictor.predict([("stereo", left, right)])[0], d_left)
+    np.testing.assert_array_equal(predictor.predict([("flow", left, later)])[0], raw_flow)
 
 
 def test_evaluation_runs_the_fill_too(predictor, monkeypatch):
@@ -145,8 +260,8 @@ def test_evaluation_runs_the_fill_too(predictor, monkeypatch):
     frame = Frame("hand", {"left_t": left, "right_t": right, "left_t1": later}, {})
     pred = ModelMethod(predictor)([frame])[0]
     np.testing.assert_array_equal(pred["disp_t"], expected)
-    np.testing.assert_array_equal(pred["flow"], np.full((H, W, 2), 1.5, np.float32))
-    assert known.calls == [2, 1]  # the frame's two pairs, then the right view's
+    np.testing.assert_allclose(pred["flow"], _flows()[2], atol=1e-6)
+    assert known.calls == [2, 2]  # the frame's two pairs, then the right view's and the backward flow's
 
 
 def test_export_drops_a_cards_fill_and_refuses_a_given_one():

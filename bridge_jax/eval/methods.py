@@ -103,12 +103,13 @@ class ModelMethod:
             self.batch_pairs = len(self._jobs(frames[0])) * self.batch_frames
         t0 = time.perf_counter()
         maps = self.predictor.stage_maps(jobs, self.batch_pairs)
-        # the polish's fill step (stereo jobs only): the right views' maps, then `Predictor.fill_stereo`
-        fill = self.predictor.fill_jobs(jobs)
+        # the polish's fill step: the reverse pairs' maps (the stereo pairs' right views, the flow pairs' backward
+        # flows), then `Predictor.fill_maps`; a backward flow kept for the occlusion estimate is not filled
+        fill = [j for j in self.predictor.fill_jobs(jobs) if owners[j][1] != "flow_bwd"]
         reverse = self.predictor.stage_maps([reverse_job(*jobs[j]) for j in fill], self.batch_pairs) if fill else []
-        at_input = self.predictor.fill_stereo(
+        at_input = self.predictor.fill_maps(
             jobs, [None if key == "flow_bwd" else map_to_input_resolution(task, m, *image_a.shape[:2])
-                   for (_, key), (task, image_a, _), m in zip(owners, jobs, maps)], reverse)
+                   for (_, key), (task, image_a, _), m in zip(owners, jobs, maps)], reverse, fill)
         preds: list[dict[str, np.ndarray]] = [{} for _ in frames]
         working = {}
         for (i, key), m, value in zip(owners, maps, at_input):
