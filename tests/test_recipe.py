@@ -97,8 +97,8 @@ def test_long_recipe_declares_its_stages_in_order():
     assert [(r.height, r.width) for r in runs] == [(64, 128), (128, 256), (256, 512)]
     assert [r.data.synthetic_scene for r in runs] == ["real_motion"] * 3
     assert [r.loss.photometric for r in runs] == ["ssim_l1", "census", "census"]
-    assert [r.loss.self_supervision for r in runs] == [0.0, 0.3, 1.0]
-    assert [r.loss.occlusion_fill for r in runs] == [0.0, 0.0, 3.0]
+    assert [r.loss.self_supervision for r in runs] == [0.0, 1.0, 1.0]
+    assert [r.loss.occlusion_fill for r in runs] == [0.0, 3.0, 3.0]
     assert [r.loss.stereo_occlusion for r in runs] == [False, True, True]
     assert runs[0].init_from == "" and runs[0].model.config["name"] == "pwc_lite"
     # fine-tuning: the last stage's settings from the shipped weights, on a folder, validating at step 0
