@@ -86,22 +86,29 @@ def _length_sq(x):
 
 
 @jax.jit
-def consistency_score(d_fw: jax.Array, d_bw: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """The consistency score and the out-of-view mask of forward maps (see the module docstring).
+def backward_at_match(d_fw: jax.Array, d_bw: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The backward maps read where the forward maps send each pixel, and whether that lies outside the image.
 
     Args:
       d_fw: `(N, H, W, 2)` forward pixel maps D, a -> b.
       d_bw: `(N, H, W, 2)` backward pixel maps D', b -> a (in b's frame).
     Returns:
-      score `(N, H, W)` float32 (<= 1: the check passes), out_of_view `(N, H, W)` bool (x + D(x) outside
+      D'(x + D(x)) `(N, H, W, 2)` (bilinear, border clamp) and out_of_view `(N, H, W)` bool (x + D(x) outside
       [0, W - 1] x [0, H - 1]), both in a's frame.
     """
-    warped = geometry.warp(d_bw, d_fw)   # D'(x + D(x)), bilinear, border clamp
-    score = _length_sq(d_fw + warped) / (ALPHA1 * (_length_sq(d_fw) + _length_sq(warped)) + ALPHA2)
+    warped = geometry.warp(d_bw, d_fw)
     h, w = d_fw.shape[-3:-1]
     xs = jnp.arange(w, dtype=d_fw.dtype)[None, None, :] + d_fw[..., 0]
     ys = jnp.arange(h, dtype=d_fw.dtype)[None, :, None] + d_fw[..., 1]
-    out_of_view = (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+    return warped, (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+
+
+@jax.jit
+def consistency_score(d_fw: jax.Array, d_bw: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The consistency score `(N, H, W)` float32 of forward maps `d_fw` against backward maps `d_bw` (see the module
+    docstring; <= 1: the check passes) and the out-of-view mask, both in a's frame (`backward_at_match`)."""
+    warped, out_of_view = backward_at_match(d_fw, d_bw)   # D'(x + D(x))
+    score = _length_sq(d_fw + warped) / (ALPHA1 * (_length_sq(d_fw) + _length_sq(warped)) + ALPHA2)
     return score, out_of_view
 
 
@@ -316,11 +323,7 @@ def forward_backward_difference(flow: np.ndarray, backward: np.ndarray) -> tuple
     if flow.ndim != 3 or flow.shape[-1] != 2 or backward.shape != flow.shape:
         raise ValueError(f"forward_backward_difference: expected two (H, W, 2) flows of one shape, got "
                          f"{flow.shape} and {backward.shape}")
-    h, w = flow.shape[:2]
-    at_match = np.asarray(geometry.warp(backward[None], flow[None]))[0]
-    xs = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
-    ys = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
-    out_of_view = (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+    at_match, out_of_view = (np.asarray(x[0]) for x in backward_at_match(flow[None], backward[None]))
     return np.sqrt(np.sum(np.square(flow + at_match), -1)).astype(np.float32), at_match, out_of_view
 
 
@@ -411,8 +414,8 @@ def forward_backward_fill(flow: np.ndarray, backward: np.ndarray, image: np.ndar
     Returns:
       (filled `(H, W, 2)` float32, failed `(H, W)` bool: the pixels that were replaced).
     """
-    difference, at_match, out_of_view = forward_backward_difference(flow, backward)
     flow = np.asarray(flow, np.float32)
+    difference, at_match, out_of_view = forward_backward_difference(flow, backward)
     limit = ALPHA1 * (np.sum(np.square(flow), -1) + np.sum(np.square(at_match), -1)) + max_difference ** 2
     failed = (np.square(difference) > limit) | out_of_view
     return guided_fill(flow, ~failed, image), failed

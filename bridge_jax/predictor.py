@@ -360,18 +360,10 @@ class Predictor:
             if check_task(task) == "stereo":
                 out[i] = checks.left_right_fill(out[i], checks.right_view_disparity(reverse))[0]
             else:
-                out[i] = checks.forward_backward_fill(out[i], reverse, self._guide(image_a, height, width))[0]
+                # the colour guide at the map's size (an image read at a reduced size is brought up to it)
+                guide = resize_images(to_rgb_float(image_a), height, width)
+                out[i] = checks.forward_backward_fill(out[i], reverse, guide)[0]
         return out
-
-    @staticmethod
-    def _guide(image: Any, height: int, width: int) -> np.ndarray:
-        """`image` as float32 RGB in [0, 1] at `height x width` (an image read at a reduced size is brought up
-        to the size its maps come back at)."""
-        rgb = to_rgb_float(image)
-        if rgb.shape[:2] != (height, width):
-            import cv2
-            rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_LINEAR)
-        return rgb
 
     def backward_maps(self, jobs: Sequence[tuple[str, Any, Any]], batch: Optional[int] = None) -> list[np.ndarray]:
         """`stage_maps` of the jobs' reverse pairs (`confidence.reverse_job`), run with the stages of
