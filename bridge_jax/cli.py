@@ -119,9 +119,10 @@ def add_test_time_options(parser: argparse.ArgumentParser) -> None:
                              "neighbour's value where that matches the images clearly better (sharper motion "
                              "boundaries), then a variational fit (sub-pixel; textureless regions and the image "
                              "border take their neighbours' motion), twice; 'fill' predicts the reverse pair too and "
-                             "replaces the pixels where the two maps disagree by more than "
+                             "corrects the pixels where the two maps disagree by more than "
                              f"{testtime.FILL_MAX_DIFFERENCE:g} px (or whose match the other image does not see): "
-                             "a disparity by its row's background, a flow by its look-alike neighbours' "
+                             "a disparity by its row's background (unless that is much nearer), a flow by its "
+                             "look-alike neighbours' "
                              "(twice the cost); 'photometric+fill' both, in that "
                              "order; 'none' = the network's maps as they are; default: what a shipped model's "
                              "card recommends, else none")

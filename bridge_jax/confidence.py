@@ -44,7 +44,7 @@ import numpy as np
 
 from bridge_jax import geometry
 from bridge_jax.resizing import _resize, map_to_input_resolution, map_to_size, resize_weights_align_corners
-from bridge_jax.testtime import FILL_MAX_DIFFERENCE, TestTime
+from bridge_jax.testtime import FILL_MAX_DIFFERENCE, FILL_MAX_RAISE, TestTime
 
 ALPHA1 = 0.01
 """Relative part of the consistency threshold (px^2 per px^2 of motion), the paper's eq. 6 value."""
@@ -285,24 +285,39 @@ def background_fill(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def left_right_fill(d_left: np.ndarray, d_right: np.ndarray,
-                    max_difference: float = FILL_MAX_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:
-    """The left view's disparity with the pixels that fail the left-right check replaced by their row's
-    background (the step that makes a semi-global matcher's maps strong, here on a network's two maps).
+def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: float = FILL_MAX_DIFFERENCE,
+                    max_raise: float = FILL_MAX_RAISE) -> tuple[np.ndarray, np.ndarray]:
+    """The left view's disparity with the pixels that fail the left-right check given their row's background
+    (the step that makes a semi-global matcher's maps strong, here on a network's two maps).
 
     A pixel fails when `left_right_difference` exceeds `max_difference` px or its match lies outside the right
-    image; failed pixels are filled by `background_fill`: each run of them takes the smaller (farther) disparity
-    of its two passing ends, since a pixel one view cannot see is background hidden by a nearer surface.
+    image. Each run of failing pixels in a row has a background, the smaller (farther) disparity of its two
+    passing ends (`background_fill`, the KITTI devkit's interpolation; a run touching the row's end: its one
+    passing end), which replaces the run's pixels:
+
+    * out of view (x - d outside the right image: the strip along the left border the right camera does not
+      see): always, nothing can be matched there;
+    * in view, where the background is farther than the pixel (a nearer surface's disparity bled over background
+      it hides in the right view: the error the check exists for) or nearer by less than `max_raise` px (a
+      mismatch, smoothed over). A background `max_raise` px or more nearer than the pixel says that both ends of
+      its run lie on a nearer surface than it claims to be, as where a floor is seen through a gap of a nearer
+      object; unlike a matcher's hole, a network's failing pixel has a value of its own, and it keeps it.
 
     Args:
       d_left, d_right: `(H, W)` disparities of the left and the right view, px (`left_right_difference`).
       max_difference: the check's tolerance, px.
+      max_raise: how much nearer than an in-view failing pixel its background may be and still replace it, px
+        (`numpy.inf`: always, the devkit's rule for a matcher's holes).
     Returns:
-      (filled `(H, W)` float32, failed `(H, W)` bool: the pixels that were replaced).
+      (filled `(H, W)` float32, failed `(H, W)` bool: the pixels that fail the check; the filled map differs from
+      `d_left` only there).
     """
     difference, out_of_view = left_right_difference(d_left, d_right)
     failed = (difference > max_difference) | out_of_view
-    return background_fill(d_left, ~failed), failed
+    d_left = np.asarray(d_left, np.float32)
+    background = background_fill(d_left, ~failed)
+    replace = out_of_view | (failed & (background < d_left + max_raise))
+    return np.where(replace, background, d_left).astype(np.float32), failed
 
 
 def forward_backward_difference(flow: np.ndarray, backward: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

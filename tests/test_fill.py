@@ -64,6 +64,26 @@ def test_the_fill_keeps_a_consistent_map_and_its_tolerance_is_one_pixel():
     assert failed[0, 4] and filled[0, 4] == pytest.approx(2.9)
 
 
+def test_the_fill_keeps_a_pixel_seen_through_a_nearer_surface():
+    # the right view at 8 everywhere. Columns 0-7 match left of the right image (x - d < 0: out of view), and
+    # column 2 claims 3, 5 px below its row (still out of view); column 10 (1) fails seen through a surface at 8 on both sides
+    # (its match at 9 reads 8), column 12 (5) fails 3 px below it, column 14 (9.5) fails above it
+    d_right = np.full((1, 18), 8.0, np.float32)
+    d_left = np.full((1, 18), 8.0, np.float32)
+    d_left[0, [2, 10, 12, 14]] = [3.0, 1.0, 5.0, 9.5]
+    filled, failed = confidence.left_right_fill(d_left, d_right)
+    assert np.flatnonzero(failed[0]).tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 10, 12, 14]
+    # column 10's background (8) is 7 px nearer than it (>= FILL_MAX_RAISE, 4): it keeps 1; column 12 is raised
+    # 3 px to 8, column 14 lowered to 8; the out-of-view strip always takes its background (column 8's 8)
+    assert testtime.FILL_MAX_RAISE == 4.0
+    np.testing.assert_array_equal(filled[0], [8.0] * 10 + [1.0] + [8.0] * 7)
+    # no limit on raising: the devkit's rule for a matcher's holes
+    np.testing.assert_array_equal(confidence.left_right_fill(d_left, d_right, max_raise=np.inf)[0], 8.0)
+    # a limit of 0: only lowering
+    np.testing.assert_array_equal(confidence.left_right_fill(d_left, d_right, max_raise=0.0)[0][0, 10:13],
+                                  [1.0, 8.0, 5.0])
+
+
 def test_forward_backward_difference_by_hand():
     # a 1 x 4 image: flow (1, 0) everywhere; the backward flow -1 at columns 0-2, +1 at column 3
     flow = np.zeros((1, 4, 2), np.float32)
