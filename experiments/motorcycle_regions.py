@@ -103,7 +103,7 @@ def left_right_flags(d_left: np.ndarray, d_right: np.ndarray, alpha1: float = 0.
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", required=True, help="comma list of shipped model names or checkpoint paths")
-    p.add_argument("--polish", default="none", help="comma list: none, photometric")
+    p.add_argument("--polish", default="none", help="comma list of test-time polishes: none, photometric, fill, photometric+fill")
     p.add_argument("--refine", type=int, default=1, help="test-time refinement passes (default 1)")
     p.add_argument("--symmetry", default="flips", help="test-time symmetry averaging (default flips)")
     p.add_argument("--left-right", action="store_true",
