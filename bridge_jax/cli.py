@@ -122,9 +122,8 @@ def add_test_time_options(parser: argparse.ArgumentParser) -> None:
                              "corrects the pixels where the two maps disagree by more than "
                              f"{testtime.FILL_MAX_DIFFERENCE:g} px (or whose match the other image does not see): "
                              "a disparity by its row's background (unless that is much nearer), a flow by its "
-                             "look-alike neighbours' "
-                             "(twice the cost); 'photometric+fill' both, in that "
-                             "order; 'none' = the network's maps as they are; default: what a shipped model's "
+                             "look-alike neighbours' (twice the cost); 'photometric+fill' both, in that order; "
+                             "'none' = the network's maps as they are; default: what a shipped model's "
                              "card recommends, else none")
 
 

@@ -238,12 +238,11 @@ def left_right_difference(d_left: np.ndarray, d_right: np.ndarray) -> tuple[np.n
     if d_left.ndim != 2 or d_right.shape != d_left.shape:
         raise ValueError(f"left_right_difference: expected two (H, W) disparities of one shape, got "
                          f"{d_left.shape} and {d_right.shape}")
-    x = np.arange(d_left.shape[1], dtype=np.float32)[None, :] - d_left
-    out_of_view = (x < 0) | (x > d_left.shape[1] - 1)
-    # d_R read at (x - d_L, y): the bilinear warp with border clamp, linear along the row for a horizontal map
-    to_match = np.stack([-d_left, np.zeros_like(d_left)], -1)
-    at_match = np.asarray(geometry.warp(d_right[None, :, :, None], to_match[None]))[0, ..., 0]
-    return np.abs(d_left - at_match).astype(np.float32), out_of_view
+    # as pixel maps: left x goes to x - d_L (D = (-d_L, 0)), right x to x + d_R (D' = (d_R, 0)); d_R is read at
+    # (x - d_L, y) by the forward-backward check's own reading (bilinear, border clamp: linear along the row)
+    zero = np.zeros_like(d_left)
+    at_match, out_of_view = backward_at_match(np.stack([-d_left, zero], -1)[None], np.stack([d_right, zero], -1)[None])
+    return np.abs(d_left - np.asarray(at_match)[0, ..., 0]).astype(np.float32), np.asarray(out_of_view)[0]
 
 
 def background_fill(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -355,9 +355,9 @@ class Predictor:
         out = list(predictions)
         for i, reverse in zip(self.fill_jobs(jobs) if indices is None else indices, reverse_maps, strict=True):
             task, image_a, _ = jobs[i]
-            height, width = input_size(image_a)
-            reverse = map_to_input_resolution(check_task(task), reverse, height, width)
-            if check_task(task) == "stereo":
+            task, (height, width) = check_task(task), input_size(image_a)
+            reverse = map_to_input_resolution(task, reverse, height, width)
+            if task == "stereo":
                 out[i] = checks.left_right_fill(out[i], checks.right_view_disparity(reverse))[0]
             else:
                 # the colour guide at the map's size (an image read at a reduced size is brought up to it)

@@ -36,8 +36,9 @@ POLISH_STEPS = ("photometric", "fill")
 """The steps a polish may run, in the order they run: "photometric" (`polish.polish_maps`, every map, at the size
 `PolishConfig.resolution` says) and "fill" (each pair's reverse pair is predicted too: for stereo maps the right
 view's disparity, and the left view's pixels that fail the left-right check take their row's background
-disparity unless it is much nearer than their own, `confidence.left_right_fill`; for flow maps the backward flow, and the pixels that fail the forward-backward check
-take the flow of their consistent neighbours of the same colour, `confidence.forward_backward_fill`)."""
+disparity unless it is much nearer than their own, `confidence.left_right_fill`; for flow maps the backward flow,
+and the pixels that fail the forward-backward check take the flow of their consistent neighbours of the same
+colour, `confidence.forward_backward_fill`)."""
 FILL_MAX_RAISE = 4.0
 """How much nearer than an in-view pixel failing the left-right check its row's background may be and still replace
 it, pixels of the input resolution (`confidence.left_right_fill`): a background farther than the pixel always does
@@ -47,10 +48,10 @@ matcher's holes) on Middlebury Motorcycle and the held-out synthetic frames (4 p
 0 and 2 px only the first), and reported on the kept-out check."""
 FILL_MAX_DIFFERENCE = 1.0
 """The fill step's tolerance, pixels of the input resolution: a left disparity that differs from the right view's
-disparity at its match by more than this fails the left-right check (`confidence.left_right_fill`); a flow is allowed this plus
-the forward-backward check's relative part (`confidence.forward_backward_fill`). The value the standard
-semi-global matcher uses for the same check (`eval.baselines.sgbm_disparity`, ``disp12MaxDiff`` 1), taken as it
-is, not tuned on any score."""
+disparity at its match by more than this fails the left-right check (`confidence.left_right_fill`); a flow is
+allowed this plus the forward-backward check's relative part (`confidence.forward_backward_fill`). The value the
+standard semi-global matcher uses for the same check (`eval.baselines.sgbm_disparity`, ``disp12MaxDiff`` 1), taken
+as it is, not tuned on any score."""
 POLISH_MODES = ("none", "photometric", "fill", "photometric+fill")
 """Test-time polish of a predictor's maps: "none", or "+"-joined `POLISH_STEPS` in their order."""
 OPTIONS = {"refine": "--refine", "symmetry": "--symmetry", "polish": "--polish"}
