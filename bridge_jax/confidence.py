@@ -44,7 +44,7 @@ import numpy as np
 
 from bridge_jax import geometry
 from bridge_jax.resizing import _resize, map_to_input_resolution, map_to_size, resize_weights_align_corners
-from bridge_jax.testtime import FILL_MAX_DIFFERENCE, FILL_MAX_RAISE, TestTime
+from bridge_jax.testtime import FILL_MAX_DIFFERENCE, FILL_MAX_RAISE, FILL_OCCLUSION_REACH, FILL_OCCLUSION_STEP, TestTime
 
 ALPHA1 = 0.01
 """Relative part of the consistency threshold (px^2 per px^2 of motion), the paper's eq. 6 value."""
@@ -284,15 +284,55 @@ def background_fill(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def widen_occlusion_runs(failed: np.ndarray, d_left: np.ndarray, step: float = FILL_OCCLUSION_STEP,
+                         reach: int = FILL_OCCLUSION_REACH) -> np.ndarray:
+    """`failed` with each occlusion run widened `reach` px to its left.
+
+    A run of failing pixels in a row of the left view whose passing neighbour on the right is more than `step` px
+    nearer than its passing neighbour on the left lies where a left view's occlusions lie: background left of a
+    nearer surface's left edge, which the right camera cannot see. A network's map climbs from the background to
+    the nearer surface over a few pixels, and the lower part of that climb passes the check (the right view's map
+    climbs alike), so the run's left neighbour already carries part of the nearer disparity and the fill would
+    take it as the run's background. Widened to its left, the run takes its background from below the climb and
+    brings the climb down with it. Runs that touch the row's end are left as they are.
+
+    Args:
+      failed: `(H, W)` bool, the pixels that fail the left-right check.
+      d_left: `(H, W)` left view's disparity px.
+      step: the jump in disparity across the run that makes it an occlusion, px.
+      reach: how far the run is widened to its left, px.
+    Returns:
+      `(H, W)` bool, `failed` and the pixels the widening adds.
+    """
+    failed = np.asarray(failed, bool)
+    width = failed.shape[1]
+    before = np.pad(failed, ((0, 0), (1, 0)))[:, :-1]  # the pixel to the left fails (False at the row's start)
+    after = np.pad(failed, ((0, 0), (0, 1)))[:, 1:]
+    # runs in row-major order: their first and last pixels pair up one to one
+    rows, first = np.nonzero(failed & ~before)
+    _, last = np.nonzero(failed & ~after)
+    inner = (first > 0) & (last < width - 1)
+    rows, first, last = rows[inner], first[inner], last[inner]
+    occlusion = d_left[rows, last + 1] > d_left[rows, first - 1] + step
+    rows, first = rows[occlusion], first[occlusion]
+    out = failed.copy()
+    for k in range(1, reach + 1):
+        ok = first - k >= 0
+        out[rows[ok], first[ok] - k] = True
+    return out
+
+
 def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: float = FILL_MAX_DIFFERENCE,
-                    max_raise: float = FILL_MAX_RAISE) -> tuple[np.ndarray, np.ndarray]:
+                    max_raise: float = FILL_MAX_RAISE, occlusion_reach: int = FILL_OCCLUSION_REACH
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The left view's disparity with the pixels that fail the left-right check given their row's background
     (the step that makes a semi-global matcher's maps strong, here on a network's two maps).
 
     A pixel fails when `left_right_difference` exceeds `max_difference` px or its match lies outside the right
-    image. Each run of failing pixels in a row has a background, the smaller (farther) disparity of its two
-    passing ends (`background_fill`, the KITTI devkit's interpolation; a run touching the row's end: its one
-    passing end), which replaces the run's pixels:
+    image; a run of failing pixels with a nearer surface on its right is widened `occlusion_reach` px to its left
+    first (`widen_occlusion_runs`). Each run of these pixels in a row has a background, the smaller (farther)
+    disparity of its two remaining ends (`background_fill`, the KITTI devkit's interpolation; a run touching the
+    row's end: its one end), which replaces the run's pixels:
 
     * out of view (x - d outside the right image: the strip along the left border the right camera does not
       see): always, nothing can be matched there;
@@ -307,15 +347,17 @@ def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: flo
       max_difference: the check's tolerance, px.
       max_raise: how much nearer than an in-view failing pixel its background may be and still replace it, px
         (`numpy.inf`: always, the devkit's rule for a matcher's holes).
+      occlusion_reach: how far an occlusion run is widened to its left, px (0: not at all).
     Returns:
       (filled `(H, W)` float32, failed `(H, W)` bool: the pixels that fail the check; the filled map differs from
-      `d_left` only there).
+      `d_left` only there and at the pixels the widening adds).
     """
     difference, out_of_view = left_right_difference(d_left, d_right)
     failed = (difference > max_difference) | out_of_view
     d_left = np.asarray(d_left, np.float32)
-    background = background_fill(d_left, ~failed)
-    replace = out_of_view | (failed & (background < d_left + max_raise))
+    treated = widen_occlusion_runs(failed, d_left, reach=occlusion_reach) if occlusion_reach > 0 else failed
+    background = background_fill(d_left, ~treated)
+    replace = out_of_view | (treated & (background < d_left + max_raise))
     return np.where(replace, background, d_left).astype(np.float32), failed
 
 

@@ -36,9 +36,10 @@ POLISH_STEPS = ("photometric", "fill")
 """The steps a polish may run, in the order they run: "photometric" (`polish.polish_maps`, every map, at the size
 `PolishConfig.resolution` says) and "fill" (each pair's reverse pair is predicted too: for stereo maps the right
 view's disparity, and the left view's pixels that fail the left-right check take their row's background
-disparity unless it is much nearer than their own, `confidence.left_right_fill`; for flow maps the backward flow,
-and the pixels that fail the forward-backward check take the flow of their consistent neighbours of the same
-colour, `confidence.forward_backward_fill`)."""
+disparity unless it is much nearer than their own, a run of them with a nearer surface on its right reaching a few
+pixels further left first, `confidence.left_right_fill`; for flow maps the backward flow, and the pixels that fail
+the forward-backward check take the flow of their consistent neighbours of the same colour,
+`confidence.forward_backward_fill`)."""
 FILL_MAX_RAISE = 4.0
 """How much nearer than an in-view pixel failing the left-right check its row's background may be and still replace
 it, pixels of the input resolution (`confidence.left_right_fill`): a background farther than the pixel always does
@@ -46,6 +47,16 @@ it, pixels of the input resolution (`confidence.left_right_fill`): a background 
 nearer surface, and it keeps its own value. Chosen among 0, 2, 4 and 8 px and no limit (the devkit's rule for a
 matcher's holes) on Middlebury Motorcycle and the held-out synthetic frames (4 px improved both against no limit,
 0 and 2 px only the first), and reported on the kept-out check."""
+FILL_OCCLUSION_STEP = 3.0
+"""How much nearer the passing pixel at the right end of a run of left-view pixels that fail the left-right check
+must be than the one at its left end for the run to count as an occlusion (`confidence.widen_occlusion_runs`):
+background the right camera cannot see, left of a nearer surface's left edge. Pixels of the input resolution."""
+FILL_OCCLUSION_REACH = 3
+"""How many pixels an occlusion run (`FILL_OCCLUSION_STEP`) is widened to its left before the fill
+(`confidence.widen_occlusion_runs`): a network's map climbs to the nearer surface over a few pixels, and the
+check passes the climb's lower part, which would otherwise give the run its background. Chosen with the step
+(reaches of 1-4 px at a step of 1 px, of 2, 3, 4 and 6 px at a step of 3 px) on Middlebury Motorcycle and the
+held-out synthetic frames, and reported on the kept-out check."""
 FILL_MAX_DIFFERENCE = 1.0
 """The fill step's tolerance, pixels of the input resolution: a left disparity that differs from the right view's
 disparity at its match by more than this fails the left-right check (`confidence.left_right_fill`); a flow is
@@ -133,4 +144,5 @@ class TestTime:
         return cls(**{f: card[key] for f, key in CARD_KEYS.items() if card.get(key) is not None})
 
 
-__all__ = ["TestTime", "MAX_REFINE", "SYMMETRY_MODES", "POLISH_MODES", "POLISH_STEPS", "FILL_MAX_DIFFERENCE", "FILL_MAX_RAISE", "OPTIONS", "CARD_KEYS"]
+__all__ = ["TestTime", "MAX_REFINE", "SYMMETRY_MODES", "POLISH_MODES", "POLISH_STEPS", "FILL_MAX_DIFFERENCE",
+           "FILL_MAX_RAISE", "FILL_OCCLUSION_STEP", "FILL_OCCLUSION_REACH", "OPTIONS", "CARD_KEYS"]

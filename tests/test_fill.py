@@ -84,6 +84,54 @@ def test_the_fill_keeps_a_pixel_seen_through_a_nearer_surface():
                                   [1.0, 8.0, 5.0])
 
 
+def _ramped_row():
+    """One row, 20 px. Truth: background at disparity 2, a nearer block at left columns 12-19 at disparity 8, seen
+    by the right camera at columns 4-11; the left view's background at columns 6-11 lands on 4-9 in the right
+    view, behind the block. The right view's map is the truth. The left map climbs to the block as a network's
+    does: columns 4 and 5 at 2.6 and 3.0 (a ramp the check passes: their matches at 1.4 and 2.0 read 2), columns
+    6-7 at 2 (hidden: their matches read the block's 8), columns 8-11 bled to 8 (their matches at 0-3 read 2)."""
+    d_right = np.full((1, 20), 2.0, np.float32)
+    d_right[0, 4:12] = 8.0
+    d_left = np.full((1, 20), 2.0, np.float32)
+    d_left[0, 4:6] = [2.6, 3.0]
+    d_left[0, 8:] = 8.0
+    return d_left, d_right
+
+
+def test_an_occlusion_run_reaches_below_the_ramp_by_hand():
+    d_left, d_right = _ramped_row()
+    filled, failed = confidence.left_right_fill(d_left, d_right)
+    # columns 0-1 match left of the right image; the run 6-11 lies between column 5 (3.0) and column 12 (8), more
+    # than FILL_OCCLUSION_STEP (3 px) nearer on its right: an occlusion run, widened by FILL_OCCLUSION_REACH (3)
+    # over columns 3-5, whose background is then column 2's 2 (not the ramp's 3.0): columns 3-11 take 2
+    assert np.flatnonzero(failed[0]).tolist() == [0, 1, 6, 7, 8, 9, 10, 11]
+    assert (testtime.FILL_OCCLUSION_STEP, testtime.FILL_OCCLUSION_REACH) == (3.0, 3)
+    expected = np.full(20, 2.0, np.float32)
+    expected[12:] = 8.0
+    np.testing.assert_array_equal(filled[0], expected)
+    # without the widening the run's background is the ramp's top, 3.0, and the ramp stays
+    expected[4:12] = [2.6] + [3.0] * 7
+    np.testing.assert_allclose(confidence.left_right_fill(d_left, d_right, occlusion_reach=0)[0][0], expected)
+
+
+def test_widen_occlusion_runs_by_hand():
+    d = np.array([[5.0, 5.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 9.0, 9.0, 9.0, 4.0, 4.0, 4.0, 9.0, 9.0]], np.float32)
+    failed = np.zeros_like(d, bool)
+    failed[0, [0, 6, 7, 9, 12, 15]] = True
+    widened = confidence.widen_occlusion_runs(failed, d, step=3.0, reach=3)
+    # run 0 touches the row's start and run 15 its end: left alone. Run 6-7: 1 on its left, 9 on its right (8 px
+    # nearer): widened over 3-5. Run 9: 9 and 9, no step. Run 12: 4 and 4, none
+    assert np.flatnonzero(widened[0]).tolist() == [0, 3, 4, 5, 6, 7, 9, 12, 15]
+    # a step of exactly 3 px is not more than 3: a run between 1 and 4 is not widened, between 1 and 4.5 it is, as
+    # far as the row's start allows
+    d2 = np.array([[1.0, 1.0, 0.0, 4.0]], np.float32)
+    assert not confidence.widen_occlusion_runs(np.array([[False, False, True, False]]), d2, reach=3)[0, :2].any()
+    d2[0, 3] = 4.5
+    np.testing.assert_array_equal(
+        confidence.widen_occlusion_runs(np.array([[False, False, True, False]]), d2, reach=3)[0],
+        [True, True, True, False])
+
+
 def test_forward_backward_difference_by_hand():
     # a 1 x 4 image: flow (1, 0) everywhere; the backward flow -1 at columns 0-2, +1 at column 3
     flow = np.zeros((1, 4, 2), np.float32)
