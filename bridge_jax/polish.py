@@ -92,7 +92,11 @@ class PolishConfig:
     """Charbonnier epsilon of the smoothness term (pixels): map differences much larger weigh 1/|difference|,
     so a motion boundary the earlier steps made sharp stays sharp."""
     variational_sigma: float = 1.5
-    """Standard deviation of the Gaussian window of the data term (the "local" half of the CLG energy)."""
+    """Standard deviation of the Gaussian window of the data term (the "local" half of the CLG energy) on flow
+    rows, pixels. A wider window averages the sensor noise of more pixels into each pixel's data term; unlike a
+    stronger smoothness it does not pull a smoothly varying motion (a zoom) towards a constant one."""
+    variational_sigma_stereo: float = 1.5
+    """The same on rectified stereo rows."""
     variational_warps: int = 20
     """Outer iterations of `variational_fit` on flow rows: b re-warped, the energy re-linearised, the robust
     weights recomputed. Each is one step of iteratively reweighted least squares, and a smooth error over a
@@ -143,6 +147,9 @@ class PolishConfig:
             raise ValueError(f"PolishConfig: resolution must be one of {RESOLUTIONS}, got {self.resolution!r}")
         if self.max_pixels < 1:
             raise ValueError(f"PolishConfig: max_pixels must be >= 1, got {self.max_pixels!r}")
+        if not min(self.variational_sigma, self.variational_sigma_stereo) > 0:
+            raise ValueError(f"PolishConfig: variational_sigma and variational_sigma_stereo must be > 0, got "
+                             f"{self.variational_sigma!r} and {self.variational_sigma_stereo!r}")
 
     def size_for(self, working: tuple[int, int], full: tuple[int, int]) -> tuple[int, int]:
         """(H, W) the polish runs at for an input of size `full` whose network ran at `working` (`resolution`,
@@ -331,10 +338,10 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
 
         sum_x  d^T J d + 2 d^T j  +  alpha sum_{x~y} c_xy psi_s(|D0_x - D0_y|) |D_x - D_y|^2,
 
-    where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`variational_sigma`) data terms
-    of Lucas-Kanade on the locally normalised images, rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly
-    (occlusions), c_xy are the `edge_weights` of `a`, and psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust
-    smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
+    where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`variational_sigma`;
+    `variational_sigma_stereo` on stereo rows) data terms of Lucas-Kanade on the locally normalised images,
+    rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly (occlusions), c_xy are the `edge_weights` of `a`, and
+    psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
     up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations
     (`config.variational_warps_stereo` on stereo rows; a row past its count keeps its map) re-warps `b`,
     recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps (`config.sor_omega`) on the 2x2
@@ -366,7 +373,11 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     red = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 == 0)[None, ..., None]
     xs = jnp.arange(w, dtype=jnp.float32)[None, None, :]
     ys = jnp.arange(h, dtype=jnp.float32)[None, :, None]
-    win = lambda x: gaussian_filter(x, config.variational_sigma)
+    if config.variational_sigma == config.variational_sigma_stereo:
+        win = lambda x: gaussian_filter(x, config.variational_sigma)
+    else:  # each row its own window (a batch of one kind is compiled with one, `config_for_rows`)
+        win = lambda x: jnp.where(flow_row, gaussian_filter(x, config.variational_sigma),
+                                  gaussian_filter(x, config.variational_sigma_stereo))
 
     # each row's own number of outer iterations: the loop runs the larger, and a row past its count keeps its map
     warps = jnp.where(flow_rows > 0.5, config.variational_warps, config.variational_warps_stereo)[:, None, None, None]
@@ -416,10 +427,15 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
 def config_for_rows(config: PolishConfig, flow_rows) -> PolishConfig:
     """`config` for a batch whose rows' kinds are known when it is compiled (`flow_rows`: host values, 1 = flow,
     0 = stereo): a batch of stereo rows only runs `variational_warps_stereo` outer iterations in all, not
-    `variational_warps` of which every row would discard the rest. The same maps either way."""
-    if np.any(np.asarray(flow_rows) > 0.5):
+    `variational_warps` of which every row would discard the rest, and a batch of one kind of rows windows its
+    data terms once, with its kind's window, not with both. The same maps either way."""
+    rows = np.asarray(flow_rows) > 0.5
+    if rows.all():
+        return dataclasses.replace(config, variational_sigma_stereo=config.variational_sigma)
+    if rows.any():
         return config
-    return dataclasses.replace(config, variational_warps=config.variational_warps_stereo)
+    return dataclasses.replace(config, variational_warps=config.variational_warps_stereo,
+                               variational_sigma=config.variational_sigma_stereo)
 
 
 def grey_images(pairs: jax.Array, config: PolishConfig = DEFAULT_CONFIG) -> tuple[jax.Array, jax.Array, jax.Array]:

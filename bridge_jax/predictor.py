@@ -542,8 +542,8 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
       test_time: a `TestTime` as it is, or a mapping of the settings given ({"refine": 0}; None values = not
         given) applied to the card's record (`zoo.card_test_time`; the defaults without a card); None = the
         card's.
-      polish_config: the polish's parameters; None = `polish.DEFAULT_CONFIG` polishing where the card says
-        (`zoo.card_polish_resolution`, its `PolishConfig.resolution`).
+      polish_config: the polish's parameters; None = `polish.DEFAULT_CONFIG` with the fields the card sets
+        (`zoo.card_polish_settings`: where the polish runs, its data window on flow maps, ...).
       dtype: None = the model config's "dtype" if it has one, else float32. `compile_mode`: see `Predictor`.
       executable_cache: the folder where compiled programs are kept whole (see `Predictor`); "auto" (the
         default) = the folder of JAX's persistent compilation cache, turning on the one the commands use first
@@ -561,9 +561,7 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
     if not isinstance(test_time, TestTime):
         test_time = zoo.card_test_time(path).with_given(test_time or {}, options)
     if polish_config is None:
-        resolution = zoo.card_polish_resolution(path)
-        polish_config = DEFAULT_CONFIG if resolution is None else dataclasses.replace(DEFAULT_CONFIG,
-                                                                                      resolution=resolution)
+        polish_config = dataclasses.replace(DEFAULT_CONFIG, **zoo.card_polish_settings(path))
     size = resolve_working_size(path, size, size_option)
     # before the weights are read: a size that cannot fit is refused without allocating anything
     memory.check_fits(size_option, size.height, size.width, memory.prediction_bytes(size.height, size.width),

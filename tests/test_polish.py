@@ -192,6 +192,31 @@ def test_stereo_rows_stop_after_their_own_outer_iterations(rng):
         polish.PolishConfig(variational_warps_stereo=-1)
 
 
+def test_each_row_kind_has_its_own_data_window(rng):
+    """In one batch, a flow row's data term is windowed by `variational_sigma` and a stereo row's by
+    `variational_sigma_stereo`: each row equals the same row polished alone with both windows set to its own, and
+    differs from it polished with the other row's window. A batch of one kind is compiled with its kind's window
+    only (`config_for_rows`)."""
+    pairs = jnp.asarray(_translated_pair(-1.4, 0.0).repeat(2, 0))
+    maps = jnp.asarray(rng.normal(0.0, 1.0, (2, H, W, 2)).astype(np.float32))
+    rows = jnp.asarray([0.0, 1.0])
+    config = polish.PolishConfig(variational_warps=4, variational_warps_stereo=4, variational_sigma=3.0,
+                                 variational_sigma_stereo=1.0)
+    both = np.asarray(polish.polish_maps(pairs, maps, rows, config))
+    for i, sigma, other in ((0, 1.0, 3.0), (1, 3.0, 1.0)):
+        alone = dataclasses.replace(config, variational_sigma=sigma, variational_sigma_stereo=sigma)
+        want = np.asarray(polish.polish_maps(pairs[i:i + 1], maps[i:i + 1], rows[i:i + 1], alone))[0]
+        np.testing.assert_allclose(both[i], want, atol=1e-5)
+        wrong = dataclasses.replace(config, variational_sigma=other, variational_sigma_stereo=other)
+        assert np.abs(both[i] - np.asarray(polish.polish_maps(pairs[i:i + 1], maps[i:i + 1], rows[i:i + 1],
+                                                               wrong))[0]).max() > 1e-3
+    assert polish.config_for_rows(config, np.ones(2)).variational_sigma_stereo == 3.0
+    assert polish.config_for_rows(config, np.zeros(2)).variational_sigma == 1.0
+    assert polish.config_for_rows(config, np.asarray(rows)) == config
+    with pytest.raises(ValueError, match="variational_sigma"):
+        polish.PolishConfig(variational_sigma_stereo=0.0)
+
+
 def test_flat_images_keep_a_constant_map():
     """Without texture every candidate costs the same: selection keeps any map as it is (no candidate is
     'clearly better'). The refinement then has only its smoothness term, which leaves a constant map exactly
@@ -422,17 +447,26 @@ def test_default_polish_comes_from_a_shipped_card_only(tmp_path):
     assert zoo.card_test_time(str(tmp_path)).polish == zoo.card_test_time("no-such-name").polish == "none"
 
 
-def test_where_the_polish_runs_comes_from_the_card():
-    """A card may say where its polish runs (`default_polish_resolution`, chosen by its real-image checks): `demo`
-    polishes at the working size, `long` (no entry) where `PolishConfig` says by default, the input size; a
-    `polish_config` given to `load_predictor` is used as it is."""
+def test_where_the_polish_runs_comes_from_the_card(monkeypatch):
+    """A card may say where its polish runs (`default_polish_resolution`) and set other fields of its
+    `PolishConfig` (`default_polish_settings`), each chosen by its real-image checks: `demo` polishes at the
+    working size, `long` where `PolishConfig` says by default (the input size) with a wider data window on flow
+    maps; a `polish_config` given to `load_predictor` is used as it is; a card naming a field `PolishConfig` does
+    not have is refused, naming the card."""
     assert zoo.card_polish_resolution("demo") == "working" and zoo.card_polish_resolution("long") is None
+    assert zoo.card_polish_settings("demo") == {"resolution": "working"}
+    assert zoo.card_polish_settings("long") == {"variational_sigma": 4.5}
     assert inference.load_predictor("demo").polish_config == dataclasses.replace(polish.DEFAULT_CONFIG,
                                                                                  resolution="working")
-    assert inference.load_predictor("long").polish_config == polish.DEFAULT_CONFIG
-    assert polish.DEFAULT_CONFIG.resolution == "input"
+    assert inference.load_predictor("long").polish_config == dataclasses.replace(polish.DEFAULT_CONFIG,
+                                                                                 variational_sigma=4.5)
+    assert polish.DEFAULT_CONFIG.resolution == "input" and polish.DEFAULT_CONFIG.variational_sigma == 1.5
     assert inference.load_predictor("demo", polish_config=CONFIG).polish_config is CONFIG
     assert any("polish runs at the working size" in line for line in zoo.card_lines("demo"))
+    assert any(line.startswith("  polish settings: variational_sigma 4.5") for line in zoo.card_lines("long"))
+    monkeypatch.setattr(zoo, "_card", lambda spec: {"default_polish_settings": {"window": 3.0}})
+    with pytest.raises(ValueError, match=r"default_polish_settings names \['window'\]"):
+        zoo.card_polish_settings("long")
 
 
 def test_predict_polish_option(tiny_checkpoint, tmp_path, capsys):

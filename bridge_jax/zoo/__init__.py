@@ -298,6 +298,23 @@ def card_polish_resolution(spec: str | os.PathLike) -> Optional[str]:
     return _card(spec).get("default_polish_resolution")
 
 
+def card_polish_settings(spec: str | os.PathLike) -> dict:
+    """The `polish.PolishConfig` fields the card of the shipped model `spec` is or was fine-tuned from
+    (`defaults_source`) sets, chosen by its real-image checks: its "default_polish_settings" ({field: value})
+    and, as "resolution", its `card_polish_resolution`; {} = the polish's own defaults. ValueError naming the
+    card for a field `PolishConfig` does not have."""
+    from bridge_jax.polish import PolishConfig
+    card = _card(spec)
+    settings = dict(card.get("default_polish_settings") or {})
+    unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(PolishConfig)})
+    if unknown:
+        raise ValueError(f"the card of {defaults_source(spec)!r}: default_polish_settings names {unknown}, which "
+                         f"polish.PolishConfig does not have")
+    if card.get("default_polish_resolution"):
+        settings["resolution"] = card["default_polish_resolution"]
+    return settings
+
+
 def card_test_time(spec: str | os.PathLike) -> TestTime:
     """The test-time stages the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
     recommends, chosen by its real-image checks (`TestTime.from_card`); `TestTime()` without such a card."""
@@ -493,6 +510,9 @@ def card_lines(name: str) -> list[str]:
     if meta.get("default_polish_resolution"):
         lines.append(f"  polish runs at the {meta['default_polish_resolution']} size (chosen by its real-image "
                      "checks; polish.PolishConfig.resolution)")
+    if meta.get("default_polish_settings"):
+        lines.append("  polish settings: " + ", ".join(f"{k} {v}" for k, v in meta["default_polish_settings"].items())
+                     + " (chosen by its real-image checks; polish.PolishConfig)")
     baselines = meta.get("real_images_opencv") or {}  # which OpenCV method each check's "opencv" numbers are
     for check, by_size in (meta.get("real_images") or {}).items():
         for size, values in by_size.items():
