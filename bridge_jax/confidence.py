@@ -355,7 +355,7 @@ def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: flo
     difference, out_of_view = left_right_difference(d_left, d_right)
     failed = (difference > max_difference) | out_of_view
     d_left = np.asarray(d_left, np.float32)
-    treated = widen_occlusion_runs(failed, d_left, reach=occlusion_reach) if occlusion_reach > 0 else failed
+    treated = widen_occlusion_runs(failed, d_left, reach=occlusion_reach)  # reach 0: `failed` as it is
     background = background_fill(d_left, ~treated)
     replace = out_of_view | (treated & (background < d_left + max_raise))
     return np.where(replace, background, d_left).astype(np.float32), failed

@@ -341,13 +341,12 @@ def variational_fit(norm_a: jax.Array, grey_a: jax.Array, grey_b: jax.Array, map
     where J = G * (rho g g^T) and j = G * (rho g I_t) are the Gaussian-windowed (`variational_sigma`;
     `variational_sigma_stereo` on stereo rows) data terms of Lucas-Kanade on the locally normalised images,
     rho = 1 / sqrt(I_t^2 + eps^2) re-weights them robustly (occlusions), c_xy are the `edge_weights` of `a`, and
-    psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust smoothness weight. A pixel whose match falls outside `b` has no data term: border clamping would make one
-    up, so its value comes from its neighbours. Each of `config.variational_warps` outer iterations
-    (`config.variational_warps_stereo` on stereo rows; a row past its count keeps its map) re-warps `b`,
-    recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps (`config.sor_omega`) on the 2x2
-    (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight` (`config.smoothness_weight_stereo`
-    on stereo rows), eps = `config.data_eps`, eps_s =
-    `config.smooth_eps`.
+    psi_s = eps_s / sqrt(|.|^2 + eps_s^2) the robust smoothness weight. A pixel whose match falls outside `b` has
+    no data term: border clamping would make one up, so its value comes from its neighbours. Each of
+    `config.variational_warps` outer iterations (`config.variational_warps_stereo` on stereo rows; a row past its
+    count keeps its map) re-warps `b`, recomputes the weights and runs `config.sor_sweeps` red-black SOR sweeps
+    (`config.sor_omega`) on the 2x2 (stereo rows: 1x1) per-pixel systems; alpha = `config.smoothness_weight`
+    (`config.smoothness_weight_stereo` on stereo rows), eps = `config.data_eps`, eps_s = `config.smooth_eps`.
 
     Where the earlier steps leave noise the smoothness term averages it with the neighbours' values, weighted by
     how well each is determined; textureless regions (sky, walls) and the image border take their neighbours'
