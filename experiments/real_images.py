@@ -55,6 +55,7 @@ each model as its card says.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -68,7 +69,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO not in sys.path:
     sys.path.insert(0, REPO)
 
-from bridge_jax import inference, testtime, visualize  # noqa: E402
+from bridge_jax import inference, polish, testtime, visualize, zoo  # noqa: E402
 from bridge_jax.bench import timing  # noqa: E402
 from bridge_jax.eval import real_checks  # noqa: E402
 
@@ -238,6 +239,44 @@ def merge_model_rows(results: dict, earlier: dict) -> dict:
     return merged
 
 
+def parse_polish_settings(parser: argparse.ArgumentParser, text: Optional[str]) -> dict:
+    """`--polish-settings`: {PolishConfig field: value} (an error naming the option for anything else)."""
+    if text is None:
+        return {}
+    try:
+        settings = json.loads(text)
+    except ValueError as e:
+        parser.error(f"--polish-settings {text!r}: not JSON ({e}); expected an object such as "
+                     '\'{"variational_sigma": 4.5}\'')
+    if not isinstance(settings, dict):
+        parser.error(f"--polish-settings {text!r}: expected a JSON object of polish.PolishConfig fields")
+    fields = {f.name for f in dataclasses.fields(polish.PolishConfig)}
+    unknown = sorted(set(settings) - fields)
+    if unknown:
+        parser.error(f"--polish-settings: polish.PolishConfig has no field {', '.join(unknown)} (it has "
+                     f"{', '.join(sorted(fields))})")
+    try:
+        dataclasses.replace(polish.DEFAULT_CONFIG, **settings)
+    except (TypeError, ValueError) as e:
+        parser.error(f"--polish-settings {text!r}: {e}")
+    return settings
+
+
+def model_polish_config(model: str, settings: dict) -> Optional[polish.PolishConfig]:
+    """The polish parameters `model` is scored with: its card's (None: `load_predictor` reads them) with
+    `settings` on top."""
+    if not settings:
+        return None
+    return dataclasses.replace(polish.DEFAULT_CONFIG, **{**zoo.card_polish_settings(model), **settings})
+
+
+def card_polish_settings(config: polish.PolishConfig) -> dict:
+    """The fields of `config` that differ from the polish's defaults: what a card records as its
+    "default_polish_settings" (`zoo.card_polish_settings` reads them back)."""
+    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(polish.DEFAULT_CONFIG, f.name)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", default="demo", help="comma list of shipped model names or checkpoint paths")
@@ -251,6 +290,10 @@ def main(argv=None) -> int:
     p.add_argument("--polish", default="card",
                    help="comma list of test-time polishes to score (none, photometric; each a method), or 'card' = "
                         "what each model's card recommends (none for a checkpoint path)")
+    p.add_argument("--polish-settings", default=None, metavar="JSON",
+                   help="polish parameters for every model, as a JSON object of `polish.PolishConfig` fields (for "
+                        "example '{\"variational_sigma\": 4.5}'), on top of what each model's card sets; --card "
+                        "records the first model's as its default_polish_settings")
     p.add_argument("--checks", default=",".join(real_checks.CHECKS),
                    help="comma list of the checks to run (default all: %(default)s); `--checks kept_out` with "
                         "several --refine/--symmetry/--polish values reports each test-time choice on the check "
@@ -277,6 +320,7 @@ def main(argv=None) -> int:
         p.error("--baselines-only and --models-from go together: the models' rows come from that JSON")
     if args.baselines_only and (args.card or args.pictures):
         p.error("--baselines-only writes no --card or --pictures: those need the models' maps")
+    polish_settings = parse_polish_settings(p, args.polish_settings)
     earlier = None
     if args.models_from:
         try:
@@ -300,9 +344,10 @@ def main(argv=None) -> int:
         for size in [s for s in args.sizes.split(",") if s]:
             ws = size if size in ("trained", "native") else tuple(int(v) for v in size.lower().split("x"))
             variants = [(r, y, q) for r in passes for y in symmetries for q in polishes]
-            for k, (refine, symmetry, polish) in enumerate(variants):
+            for k, (refine, symmetry, finish) in enumerate(variants):
                 pred = inference.load_predictor(model, size=ws, options=testtime.OPTIONS,
-                                                test_time={"refine": refine, "symmetry": symmetry, "polish": polish})
+                                                test_time={"refine": refine, "symmetry": symmetry, "polish": finish},
+                                                polish_config=model_polish_config(model, polish_settings))
                 label = f"{os.path.basename(model.rstrip('/'))} @ {size}"
                 if size == "trained":
                     label += f" ({pred.height}x{pred.width})"
@@ -352,6 +397,8 @@ def main(argv=None) -> int:
                    "real_images_measured": f"{stamp}, {timing.machine()}",
                    "default_working_size": pick_working_size(card), "default_refine": first.refine,
                    "default_symmetry": first.symmetry, "default_polish": first.polish}
+        if first.polish != "none" and card_polish_settings(first.polish_config):
+            entries["default_polish_settings"] = card_polish_settings(first.polish_config)
         if card_labels_none and first.polish != "none":  # `--polish P,none`: the network's own numbers beside
             entries[real_checks.CARD_KEY_POLISH_NONE] = {
                 check: {size: results[check][label] for size, label in card_labels_none.items()} for check in checks}

@@ -189,3 +189,27 @@ def test_kept_out_check_is_other_data_scored_by_hand():
     # no choice is made on it: the numbers that pick a card's working size come from the other checks
     assert "kept_out" in real_checks.CHECKS and "kept_out" not in real_checks.SELECTION_CHECKS
     assert {c for c, _ in real_images.HEADLINE} <= set(real_checks.SELECTION_CHECKS)
+
+
+def test_polish_settings_option_and_what_a_card_records():
+    """--polish-settings: a JSON object of PolishConfig fields on top of the model's card; a card records the
+    fields that differ from the polish's defaults (which zoo.card_polish_settings reads back)."""
+    import argparse
+    import dataclasses
+
+    from bridge_jax import polish
+
+    parser = argparse.ArgumentParser()
+    assert real_images.parse_polish_settings(parser, None) == {}
+    assert real_images.parse_polish_settings(parser, '{"variational_sigma": 4.5}') == {"variational_sigma": 4.5}
+    for bad in ('{"variational_sigma": ', '[4.5]', '{"sigma": 4.5}', '{"variational_sigma": -1}'):
+        with pytest.raises(SystemExit):
+            real_images.parse_polish_settings(parser, bad)
+    assert real_images.model_polish_config("demo", {}) is None  # load_predictor reads the card itself
+    # long's card sets the flow window to 4.5; the option goes on top of it, the stereo window stays the default
+    config = real_images.model_polish_config("long", {"smoothness_weight": 2.0})
+    assert config.variational_sigma == 4.5 and config.smoothness_weight == 2.0
+    assert config.variational_sigma_stereo == polish.DEFAULT_CONFIG.variational_sigma_stereo
+    assert real_images.card_polish_settings(config) == {"variational_sigma": 4.5, "smoothness_weight": 2.0}
+    assert real_images.card_polish_settings(polish.DEFAULT_CONFIG) == {}
+    assert real_images.card_polish_settings(dataclasses.replace(polish.DEFAULT_CONFIG, rounds=3)) == {"rounds": 3}
