@@ -256,12 +256,37 @@ def read_record(workdir: str) -> Optional[dict]:
         raise ValueError(f"{path}: unreadable ({e})") from None
 
 
+def code_commit() -> Optional[str]:
+    """The git commit of the checkout `bridge_jax` is imported from ("-dirty" appended when tracked files differ
+    from it), or None when it is not a git checkout (an installed wheel) or git is missing."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        head = subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=30)
+        if head.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", root, "diff", "--quiet", "HEAD", "--"], capture_output=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("-dirty" if dirty.returncode == 1 else "")
+
+
 def write_record(workdir: str, names: Sequence[str], stage_configs: dict[str, dict],
-                 config_name: Optional[str] = None) -> None:
-    """W/recipe.json: the stage names in order, each stage's config, and the `--config` the recipe was run with
-    (what `bridge-zoo build` writes on a card as the command that rebuilds the model)."""
-    files.write_json(os.path.join(workdir, RECIPE_JSON), {"stages": list(names), "configs": stage_configs,
-                                                         "config_name": config_name})
+                 config_name: Optional[str] = None, commit: Optional[str] = None) -> None:
+    """W/recipe.json: the stage names in order, each stage's config, the `--config` the recipe was run with
+    (what `bridge-zoo build` writes on a card as the command that rebuilds the model), and the code's `commit`
+    (`code_commit`). A resumed run keeps the commit the recipe started at and lists any other it resumed at
+    under "resumed_at_commits", so a card says when a model's stages ran on different code."""
+    earlier = read_record(workdir) or {}
+    record = {"stages": list(names), "configs": stage_configs, "config_name": config_name,
+              "commit": earlier.get("commit", commit) if earlier else commit}
+    resumed = list(earlier.get("resumed_at_commits") or [])
+    if earlier and commit != record["commit"] and commit not in resumed:
+        resumed.append(commit)
+    if resumed:
+        record["resumed_at_commits"] = resumed
+    files.write_json(os.path.join(workdir, RECIPE_JSON), record)
 
 
 def finished(workdir: str, name: str) -> Optional[dict]:

@@ -778,7 +778,8 @@ def _run_stages(runs: dict[str, setup.Run], workdir: str, config_name: Optional[
     names = list(runs)
     os.makedirs(workdir, exist_ok=True)
     if jax.process_index() == 0:
-        recipe.write_record(workdir, names, {name: run.config_json for name, run in runs.items()}, config_name)
+        recipe.write_record(workdir, names, {name: run.config_json for name, run in runs.items()}, config_name,
+                            recipe.code_commit())
     offset, stages, result = 0, [], None
     for i, name in enumerate(names):
         done = recipe.finished(workdir, name)

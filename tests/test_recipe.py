@@ -283,6 +283,31 @@ def test_long_short_runs_every_stage_end_to_end(tmp_path):
     status = subprocess.run([sys.executable, "-m", "bridge_jax.train", "--status", wd], cwd=REPO,
                             env=subprocess_env(1), capture_output=True, text=True)
     assert f"stage 3/3 {names[-1]} finished" in status.stdout
+    # the code the recipe ran is recorded, and a card built from it names that commit
+    head = subprocess.run(["git", "-C", REPO, "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0:
+        assert recipe.read_record(wd)["commit"].split("-")[0] == head.stdout.strip()
+        assert zoo.recipe_summary(wd, machine="m")["commit"] == recipe.read_record(wd)["commit"]
+
+
+def test_the_recipe_record_keeps_the_commit_it_started_at(tmp_path):
+    """recipe.json names the code's commit; a run resumed on other code keeps the first and lists the others once
+    (what a card then says beside its rebuild command)."""
+    wd = str(tmp_path)
+    recipe.write_record(wd, ["a"], {"a": {}}, "long", "c1")
+    recipe.write_record(wd, ["a"], {"a": {}}, "long", "c1")
+    assert recipe.read_record(wd)["commit"] == "c1" and "resumed_at_commits" not in recipe.read_record(wd)
+    recipe.write_record(wd, ["a"], {"a": {}}, "long", "c2-dirty")
+    recipe.write_record(wd, ["a"], {"a": {}}, "long", "c2-dirty")
+    recipe.write_record(wd, ["a"], {"a": {}}, "long", "c3")
+    record = recipe.read_record(wd)
+    assert record["commit"] == "c1" and record["resumed_at_commits"] == ["c2-dirty", "c3"]
+    assert recipe.read_record(str(tmp_path / "none")) is None
+    # outside a git checkout there is no commit to record (an installed wheel)
+    commit = recipe.code_commit()
+    head = subprocess.run(["git", "-C", REPO, "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0:
+        assert commit is not None and commit.split("-")[0] == head.stdout.strip()
 
 
 @pytest.mark.slow

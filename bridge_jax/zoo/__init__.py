@@ -430,9 +430,10 @@ def build_shipped(name: str, workdir: str | os.PathLike, *, validation: Optional
 
 def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) -> dict:
     """For a recipe workdir (`bridge_jax.recipe`): {"rebuild": the one command that trains it again from nothing,
-    "recipe": [{"stage", "steps", "seconds", "height", "width", "global_batch", "lr", "validation" (the stage's last,
-    at its own size)} per stage], and
-    "training": {"total_seconds": the stages' seconds added up, "machine"}}; {} for any other workdir."""
+    "commit" (and "resumed_at_commits") of the code it ran, where the workdir recorded one, "recipe": [{"stage",
+    "steps", "seconds", "height", "width", "global_batch", "lr", "validation" (the stage's last, at its own size)}
+    per stage], and "training": {"total_seconds": the stages' seconds added up, "machine"}}; {} for any other
+    workdir."""
     from bridge_jax import recipe  # heavy import only for maintainers
 
     record = recipe.read_record(os.fspath(workdir))
@@ -448,7 +449,8 @@ def recipe_summary(workdir: str | os.PathLike, machine: Optional[str] = None) ->
                        **{k: cfg.get(k) for k in ("height", "width", "global_batch", "lr")},
                        "validation": done.get("validation") or {}})
     command = f"bridge-train --config={record.get('config_name') or '?'} --workdir=WORKDIR"
-    return {"rebuild": command, "recipe": stages,
+    code = {k: record[k] for k in ("commit", "resumed_at_commits") if record.get(k)}
+    return {"rebuild": command, **code, "recipe": stages,
             "training": dict(training_summary(workdir), machine=machine or _this_machine(),
                              total_seconds=round(sum(s["seconds"] for s in stages), 1))}
 
@@ -470,6 +472,8 @@ def card_lines(name: str) -> list[str]:
              f"{loop.get('num_train_steps')} steps planned; init_from {cfg.get('init_from') or 'scratch'}"]
     if meta.get("rebuild"):
         at = f" (trained at commit {meta['commit']})" if meta.get("commit") else ""
+        if meta.get("resumed_at_commits"):
+            at += f" (resumed at {', '.join(meta['resumed_at_commits'])})"
         lines.append(f"  rebuild: {meta['rebuild']}{at}")
     for stage in meta.get("recipe") or []:  # the stages of the recipe that trained it
         val = stage.get("validation") or {}
