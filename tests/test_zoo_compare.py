@@ -3,12 +3,14 @@
 The scorers are checked against numbers computed here with numpy alone, for stand-in methods whose answer is
 known: the ground truth itself (every error 0) and zero motion (every error the ground truth's own length).
 """
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from bridge_jax import inference, metrics, zoo
+from bridge_jax.polish import DEFAULT_CONFIG as POLISH_DEFAULTS
 from bridge_jax.eval import real_checks
 from bridge_jax.zoo.__main__ import main
 
@@ -189,6 +191,13 @@ def test_compare_runs_the_checkpoint_at_the_cards_settings(zero_motion_checkpoin
             assert row["as_good"] == (row["workdir"] <= row["card"])  # never close here: no ties
             assert row["card_polish_none"] is None  # demo's card holds no polish-none numbers
     assert not any(r["as_good"] for r in result["rows"])  # zero motion is no match for the demo model
+    # the checkpoint is polished with the parameters the card was measured with, whatever its own lineage says
+    assert all(c["polish_config"] == dataclasses.replace(POLISH_DEFAULTS, **zoo.card_polish_settings("demo"))
+               for c in zero_motion_checkpoint)
+    zero_motion_checkpoint.clear()
+    real_checks.compare_with_card("long", "work/x", polish="card", limit=1)
+    assert [c["polish_config"].variational_sigma for c in zero_motion_checkpoint] == [
+        zoo.info("long")["default_polish_settings"]["variational_sigma"]]
 
 
 def test_compare_command_prints_the_table_and_writes_json(zero_motion_checkpoint, tmp_path, capsys):

@@ -1,8 +1,8 @@
 r"""The `long` model's recipe: pwc_lite trained from random initialisation on the synthetic scenes that carry over to
 real images, in stages, by one command (a recipe, `bridge_jax.recipe`).
 
-    bridge-train --config=long --workdir=work/long                # the whole recipe, from nothing (resumable)
-    bridge-train --status work/long                               # which stage, which step
+    bridge-train --config=long --workdir=work/rebuilt             # the whole recipe, from nothing (resumable)
+    bridge-train --status work/rebuilt                            # which stage, which step
     bridge-train --config=long:finetune --workdir=work/mine \
         --config.data.data_dir=MY_VIDEO --config.data.val_dir=MY_HELDOUT   # continue it on your own stereo video
 

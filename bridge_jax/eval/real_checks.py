@@ -644,9 +644,14 @@ def compare_with_card(name: str, checkpoint: str | os.PathLike, *, polish: str =
     working_size = (int(card["height"]), int(card["width"])) if size == "trained" else cli.parse_working_size(size)
     # every predictor loads (and so every path is checked) before the minutes of scoring start
     test_time = TestTime(settings["refine"], settings["symmetry"])
+    # the polish's parameters the card was measured with (a retrained workdir has no card of its own to read them
+    # from, and its numbers are only comparable at the same ones)
+    from bridge_jax.polish import DEFAULT_CONFIG
+    polish_config = dataclasses.replace(DEFAULT_CONFIG, **zoo.card_polish_settings(name))
     predictors = {q: inference.load_predictor(checkpoint, size=working_size,
                                               size_option=f"{name}'s working size {size}",
-                                              test_time=dataclasses.replace(test_time, polish=q))
+                                              test_time=dataclasses.replace(test_time, polish=q),
+                                              polish_config=polish_config)
                   for q in polishes}
     data = {check: build(check, limit=limit) for check in reference}
     runs = {}

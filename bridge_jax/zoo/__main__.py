@@ -3,23 +3,24 @@ regenerate a shipped model's weights from a training workdir.
 
     bridge-zoo                                      # names, kinds, where each one is (or how to get it)
     bridge-zoo show long                            # a shipped model's card: recipe, steps, time, numbers
-    bridge-zoo compare long work/long6              # work/long6 on long's real-image checks, beside its card
+    bridge-zoo compare long work/rebuilt            # work/rebuilt on long's real-image checks, beside its card
     bridge-zoo build demo --from work/demo/train    # after the demo config changed and `make demo`
-    bridge-zoo build long --from work/long --card work/long_card.json   # a recipe workdir (bridge-train --config=long)
+    bridge-zoo build long --from work/rebuilt --card work/card.json   # a recipe workdir (bridge-train --config=long)
 
 `build` writes bridge_jax/zoo/<name>.npz (float32 params, compressed) and <name>.json (model, working size, the
-run's config, steps, training time and machine, last validation, SHA-256, and the entries of --card); the test suite checks the shipped model against the current
-`demo` config and that it beats zero motion on the synthetic validation cycles.
+run's config, steps, training time and machine, last validation, SHA-256, and the entries of --card); the test
+suite checks each shipped model against its current config and that it beats zero motion on the synthetic
+validation cycles.
 
 `compare NAME WORKDIR` scores WORKDIR (a training workdir, step dir or params dir; anything `--checkpoint`
 takes) on the real-image checks whose numbers NAME's card holds (`bridge_jax.eval.real_checks`: Middlebury
 Motorcycle disparity, held-out photos under homographies, held-out synthetic frames), at the card's test-time
-settings (working size, --refine, --symmetry, --polish), and prints one row per check and metric: the card's
-number, WORKDIR's, the difference and whether WORKDIR is at least as good (lower is better; differences under
-0.1 % are ties). `--polish both` (the default) also scores WORKDIR without the polish, beside the card's
-polish-none numbers where the card has them ("–" where not). `compare long long` took about 7 min on a 2-core
-AMD EPYC (about 4.5 with `--polish card`); `--limit N` scores only the first N inputs of each check (a quick
-look, not the card's numbers); `--json OUT` writes every number.
+settings (working size, --refine, --symmetry, --polish and the polish's parameters), and prints one row per check
+and metric: the card's number, WORKDIR's, the difference and whether WORKDIR is at least as good (lower is
+better; differences under 0.1 % are ties). `--polish both` (the default) also scores WORKDIR without the polish,
+beside the card's polish-none numbers where the card has them ("–" where not). `compare long long` took about 7
+min on a 2-core AMD EPYC (about 4.5 with `--polish card`); `--limit N` scores only the first N inputs of each
+check (a quick look, not the card's numbers); `--json OUT` writes every number.
 """
 from __future__ import annotations
 
