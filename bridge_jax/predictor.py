@@ -13,7 +13,6 @@ record; resizing runs in numpy, so new input sizes never recompile it. Parameter
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -561,7 +560,7 @@ def load_predictor(path: str | os.PathLike, *, size: Any = None, test_time: Test
     if not isinstance(test_time, TestTime):
         test_time = zoo.card_test_time(path).with_given(test_time or {}, options)
     if polish_config is None:
-        polish_config = dataclasses.replace(DEFAULT_CONFIG, **zoo.card_polish_settings(path))
+        polish_config = zoo.card_polish_config(path)
     size = resolve_working_size(path, size, size_option)
     # before the weights are read: a size that cannot fit is refused without allocating anything
     memory.check_fits(size_option, size.height, size.width, memory.prediction_bytes(size.height, size.width),

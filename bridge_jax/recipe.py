@@ -279,8 +279,9 @@ def write_record(workdir: str, names: Sequence[str], stage_configs: dict[str, di
     (`code_commit`). A resumed run keeps the commit the recipe started at and lists any other it resumed at
     under "resumed_at_commits", so a card says when a model's stages ran on different code."""
     earlier = read_record(workdir) or {}
+    # a record written before commits were recorded started on unknown code: it stays without one
     record = {"stages": list(names), "configs": stage_configs, "config_name": config_name,
-              "commit": earlier.get("commit", commit) if earlier else commit}
+              "commit": earlier.get("commit") if earlier else commit}
     resumed = list(earlier.get("resumed_at_commits") or [])
     if earlier and commit != record["commit"] and commit not in resumed:
         resumed.append(commit)

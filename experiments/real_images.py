@@ -267,7 +267,7 @@ def model_polish_config(model: str, settings: dict) -> Optional[polish.PolishCon
     `settings` on top."""
     if not settings:
         return None
-    return dataclasses.replace(polish.DEFAULT_CONFIG, **{**zoo.card_polish_settings(model), **settings})
+    return zoo.card_polish_config(model, **settings)
 
 
 def card_polish_settings(config: polish.PolishConfig) -> dict:
@@ -397,8 +397,9 @@ def main(argv=None) -> int:
                    "real_images_measured": f"{stamp}, {timing.machine()}",
                    "default_working_size": pick_working_size(card), "default_refine": first.refine,
                    "default_symmetry": first.symmetry, "default_polish": first.polish}
-        if first.polish != "none" and card_polish_settings(first.polish_config):
-            entries["default_polish_settings"] = card_polish_settings(first.polish_config)
+        measured_with = card_polish_settings(first.polish_config) if first.polish != "none" else {}
+        if measured_with:
+            entries["default_polish_settings"] = measured_with
         if card_labels_none and first.polish != "none":  # `--polish P,none`: the network's own numbers beside
             entries[real_checks.CARD_KEY_POLISH_NONE] = {
                 check: {size: results[check][label] for size, label in card_labels_none.items()} for check in checks}

@@ -303,6 +303,13 @@ def test_the_recipe_record_keeps_the_commit_it_started_at(tmp_path):
     record = recipe.read_record(wd)
     assert record["commit"] == "c1" and record["resumed_at_commits"] == ["c2-dirty", "c3"]
     assert recipe.read_record(str(tmp_path / "none")) is None
+    # a record written before commits were recorded does not take the commit of the code that resumes it
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / recipe.RECIPE_JSON).write_text(json.dumps({"stages": ["a"], "configs": {"a": {}}, "config_name": "long"}))
+    recipe.write_record(str(old), ["a"], {"a": {}}, "long", "c4")
+    assert recipe.read_record(str(old))["commit"] is None
+    assert recipe.read_record(str(old))["resumed_at_commits"] == ["c4"]
     # outside a git checkout there is no commit to record (an installed wheel)
     commit = recipe.code_commit()
     head = subprocess.run(["git", "-C", REPO, "rev-parse", "HEAD"], capture_output=True, text=True)

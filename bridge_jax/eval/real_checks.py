@@ -646,8 +646,7 @@ def compare_with_card(name: str, checkpoint: str | os.PathLike, *, polish: str =
     test_time = TestTime(settings["refine"], settings["symmetry"])
     # the polish's parameters the card was measured with (a retrained workdir has no card of its own to read them
     # from, and its numbers are only comparable at the same ones)
-    from bridge_jax.polish import DEFAULT_CONFIG
-    polish_config = dataclasses.replace(DEFAULT_CONFIG, **zoo.card_polish_settings(name))
+    polish_config = zoo.card_polish_config(name)
     predictors = {q: inference.load_predictor(checkpoint, size=working_size,
                                               size_option=f"{name}'s working size {size}",
                                               test_time=dataclasses.replace(test_time, polish=q),

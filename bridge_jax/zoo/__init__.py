@@ -315,6 +315,13 @@ def card_polish_settings(spec: str | os.PathLike) -> dict:
     return settings
 
 
+def card_polish_config(spec: str | os.PathLike, **overrides):
+    """The `polish.PolishConfig` the card of the shipped model `spec` is or was fine-tuned from was measured with:
+    the polish's defaults with the card's fields (`card_polish_settings`), then `overrides`, on top."""
+    from bridge_jax.polish import DEFAULT_CONFIG
+    return dataclasses.replace(DEFAULT_CONFIG, **{**card_polish_settings(spec), **overrides})
+
+
 def card_test_time(spec: str | os.PathLike) -> TestTime:
     """The test-time stages the card of the shipped model `spec` is or was fine-tuned from (`defaults_source`)
     recommends, chosen by its real-image checks (`TestTime.from_card`); `TestTime()` without such a card."""
