@@ -44,7 +44,8 @@ import numpy as np
 
 from bridge_jax import geometry
 from bridge_jax.resizing import _resize, map_to_input_resolution, map_to_size, resize_weights_align_corners
-from bridge_jax.testtime import FILL_MAX_DIFFERENCE, FILL_MAX_RAISE, FILL_OCCLUSION_REACH, FILL_OCCLUSION_STEP, TestTime
+from bridge_jax.testtime import (FILL_MAX_DIFFERENCE, FILL_MAX_DIFFERENCE_STEREO, FILL_MAX_RAISE, FILL_OCCLUSION_REACH,
+                                 FILL_OCCLUSION_STEP, TestTime)
 
 ALPHA1 = 0.01
 """Relative part of the consistency threshold (px^2 per px^2 of motion), the paper's eq. 6 value."""
@@ -322,7 +323,7 @@ def widen_occlusion_runs(failed: np.ndarray, d_left: np.ndarray, step: float = F
     return out
 
 
-def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: float = FILL_MAX_DIFFERENCE,
+def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: float = FILL_MAX_DIFFERENCE_STEREO,
                     max_raise: float = FILL_MAX_RAISE, occlusion_reach: int = FILL_OCCLUSION_REACH
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The left view's disparity with the pixels that fail the left-right check given their row's background
@@ -344,7 +345,7 @@ def left_right_fill(d_left: np.ndarray, d_right: np.ndarray, max_difference: flo
 
     Args:
       d_left, d_right: `(H, W)` disparities of the left and the right view, px (`left_right_difference`).
-      max_difference: the check's tolerance, px.
+      max_difference: the check's tolerance, px (`testtime.FILL_MAX_DIFFERENCE_STEREO`).
       max_raise: how much nearer than an in-view failing pixel its background may be and still replace it, px
         (`numpy.inf`: always, the devkit's rule for a matcher's holes).
       occlusion_reach: how far an occlusion run is widened to its left, px (0: not at all).
@@ -462,7 +463,8 @@ def forward_backward_fill(flow: np.ndarray, backward: np.ndarray, image: np.ndar
     |F + B(x + F)|^2 > ALPHA1 (|F|^2 + |B(x + F)|^2) + max_difference^2
     (`forward_backward_difference`): the paper's check (eq. 6) with its relative part (a flow of 30 px may be off
     by 3 px before it fails) and, in place of its constant part of the working size, the fill's tolerance in
-    pixels of the input resolution (`testtime.FILL_MAX_DIFFERENCE`, the same as the left-right fill's).
+    pixels of the input resolution (`testtime.FILL_MAX_DIFFERENCE`; the left-right fill's is
+    `testtime.FILL_MAX_DIFFERENCE_STEREO`).
 
     Args:
       flow: `(H, W, 2)` flow a -> b, px; backward: `(H, W, 2)` flow b -> a, px (the same stages' map of (b, a)).

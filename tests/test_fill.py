@@ -50,18 +50,20 @@ def test_the_fill_gives_a_bled_occlusion_its_background_by_hand():
     np.testing.assert_array_equal(filled[0], expected)
 
 
-def test_the_fill_keeps_a_consistent_map_and_its_tolerance_is_one_pixel():
+def test_the_fill_keeps_a_consistent_map_and_its_tolerance_is_three_quarters_of_a_pixel():
+    assert testtime.FILL_MAX_DIFFERENCE_STEREO == 0.75
     d_left, d_right = _bled_row()
     d_left[0, 7:9] = 2.0  # the truth: nothing bled
-    d_left[0, 3:6] += 0.9  # within the tolerance of the check (the right view says 2 at their matches, 0.1-2.1)
+    d_left[0, 3:6] += 0.7  # within the tolerance of the check (the right view says 2 at their matches, 0.3-2.3)
     filled, failed = confidence.left_right_fill(d_left, d_right)
     # the truly hidden columns 6-8 fail on their own (background 2 lands on the block's 5 in the right view)
     assert np.flatnonzero(failed[0]).tolist() == [0, 1, 6, 7, 8]
     np.testing.assert_array_equal(filled[0, 2:6], d_left[0, 2:6])
-    np.testing.assert_allclose(filled[0, 6:9], 2.9)  # between column 5 (2.9) and 9 (5): the farther
-    d_left[0, 4] += 0.2  # 1.1 px off: fails, takes the smaller of its ends (2.9 and 2.9)
+    np.testing.assert_allclose(filled[0, 6:9], 2.7)  # between column 5 (2.7) and 9 (5): the farther
+    d_left[0, 4] += 0.2  # 0.9 px off: fails (SGBM's 1 px would pass it), takes the smaller of its ends (2.7, 2.7)
     filled, failed = confidence.left_right_fill(d_left, d_right)
-    assert failed[0, 4] and filled[0, 4] == pytest.approx(2.9)
+    assert failed[0, 4] and filled[0, 4] == pytest.approx(2.7)
+    assert not confidence.left_right_fill(d_left, d_right, max_difference=1.0)[1][0, 4]
 
 
 def test_the_fill_keeps_a_pixel_seen_through_a_nearer_surface():
@@ -88,12 +90,12 @@ def _ramped_row():
     """One row, 20 px. Truth: background at disparity 2, a nearer block at left columns 12-19 at disparity 8, seen
     by the right camera at columns 4-11; the left view's background at columns 6-11 lands on 4-9 in the right
     view, behind the block. The right view's map is the truth. The left map climbs to the block as a network's
-    does: columns 4 and 5 at 2.6 and 3.0 (a ramp the check passes: their matches at 1.4 and 2.0 read 2), columns
+    does: columns 4 and 5 at 2.4 and 2.7 (a ramp the check passes: their matches at 1.6 and 2.3 read 2), columns
     6-7 at 2 (hidden: their matches read the block's 8), columns 8-11 bled to 8 (their matches at 0-3 read 2)."""
     d_right = np.full((1, 20), 2.0, np.float32)
     d_right[0, 4:12] = 8.0
     d_left = np.full((1, 20), 2.0, np.float32)
-    d_left[0, 4:6] = [2.6, 3.0]
+    d_left[0, 4:6] = [2.4, 2.7]
     d_left[0, 8:] = 8.0
     return d_left, d_right
 
@@ -101,16 +103,16 @@ def _ramped_row():
 def test_an_occlusion_run_reaches_below_the_ramp_by_hand():
     d_left, d_right = _ramped_row()
     filled, failed = confidence.left_right_fill(d_left, d_right)
-    # columns 0-1 match left of the right image; the run 6-11 lies between column 5 (3.0) and column 12 (8), more
+    # columns 0-1 match left of the right image; the run 6-11 lies between column 5 (2.7) and column 12 (8), more
     # than FILL_OCCLUSION_STEP (3 px) nearer on its right: an occlusion run, widened by FILL_OCCLUSION_REACH (3)
-    # over columns 3-5, whose background is then column 2's 2 (not the ramp's 3.0): columns 3-11 take 2
+    # over columns 3-5, whose background is then column 2's 2 (not the ramp's 2.7): columns 3-11 take 2
     assert np.flatnonzero(failed[0]).tolist() == [0, 1, 6, 7, 8, 9, 10, 11]
     assert (testtime.FILL_OCCLUSION_STEP, testtime.FILL_OCCLUSION_REACH) == (3.0, 3)
     expected = np.full(20, 2.0, np.float32)
     expected[12:] = 8.0
     np.testing.assert_array_equal(filled[0], expected)
-    # without the widening the run's background is the ramp's top, 3.0, and the ramp stays
-    expected[4:12] = [2.6] + [3.0] * 7
+    # without the widening the run's background is the ramp's top, 2.7, and the ramp stays
+    expected[4:12] = [2.4] + [2.7] * 7
     np.testing.assert_allclose(confidence.left_right_fill(d_left, d_right, occlusion_reach=0)[0][0], expected)
 
 
